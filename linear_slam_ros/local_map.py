@@ -1,0 +1,328 @@
+"""The local map value: estimate and information of poses and point features in one pose's frame.
+
+A local map (a submap, or the global map being built) holds variables, each a robot pose or a
+point feature, stacked into one state vector, with an information matrix over that vector. All
+variables are expressed in the frame of one robot pose, ``frame_id``, which is not itself in the
+state. Variables are identified by ``(kind, id)``: pose ids are robot pose indices (``>= 0``),
+feature ids are the front-end's landmark ids.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from dataclasses import dataclass
+from typing import Union
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from linear_slam_ros.errors import InvalidMapError
+from linear_slam_ros.geometry import angle_size, point_size, pose_size
+
+POSE: int = 0
+"""Kind code of a robot pose variable."""
+FEATURE: int = 1
+"""Kind code of a point feature variable."""
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+InfoMatrix = Union[FloatArray, sp.csr_matrix]
+
+_DENSE_CHECK_MAX = 3000
+_SYMMETRY_RTOL = 1e-9
+
+
+def var_keys(ids: npt.ArrayLike, kinds: npt.ArrayLike) -> IntArray:
+    """Return the integer key ``2 * id + kind`` that identifies each variable uniquely."""
+    return np.asarray(ids, dtype=np.int64) * 2 + np.asarray(kinds, dtype=np.int64)
+
+
+def pose_key(pose_id: int) -> int:
+    """Return the variable key of robot pose ``pose_id``."""
+    return 2 * int(pose_id) + POSE
+
+
+def var_sizes(dim: int, kinds: npt.ArrayLike) -> IntArray:
+    """Return the number of scalars of each variable (pose 3/6, feature 2/3)."""
+    k = np.asarray(kinds)
+    return np.where(k == POSE, pose_size(dim), point_size(dim)).astype(np.int64)
+
+
+def angle_mask(dim: int, kinds: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+    """Return a boolean mask over the state vector marking the angle scalars of poses."""
+    k = np.asarray(kinds)
+    sizes = var_sizes(dim, k)
+    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    mask = np.zeros(int(sizes.sum()), dtype=bool)
+    starts = offsets[k == POSE] + dim
+    for j in range(angle_size(dim)):
+        mask[starts + j] = True
+    return mask
+
+
+def is_sparse(matrix: InfoMatrix) -> bool:
+    """Return whether an information matrix is stored as a scipy sparse matrix."""
+    return sp.issparse(matrix)
+
+
+def to_dense(matrix: InfoMatrix) -> FloatArray:
+    """Return an information matrix as a dense ``ndarray``."""
+    return matrix.toarray() if sp.issparse(matrix) else np.asarray(matrix)
+
+
+def to_csr(matrix: InfoMatrix) -> sp.csr_matrix:
+    """Return an information matrix as CSR."""
+    return sp.csr_matrix(matrix) if not sp.issparse(matrix) else matrix.tocsr()
+
+
+class VariableLayout:
+    """Layout helpers shared by maps: offsets, keys and index lookups of the variables.
+
+    Mixed into frozen dataclasses that define ``dim``, ``frame_id``, ``ids``, ``kinds``, ``x``
+    and ``name``.
+    """
+
+    dim: int
+    frame_id: int
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    x: FloatArray
+    name: str
+
+    @functools.cached_property
+    def sizes(self) -> IntArray:
+        """``(m,)`` number of scalars of each variable."""
+        return var_sizes(self.dim, self.kinds)
+
+    @functools.cached_property
+    def offsets(self) -> IntArray:
+        """``(m,)`` index of each variable's first scalar in :attr:`x`."""
+        return np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
+
+    @functools.cached_property
+    def keys(self) -> IntArray:
+        """``(m,)`` variable keys ``2 * id + kind``."""
+        return var_keys(self.ids, self.kinds)
+
+    @functools.cached_property
+    def key_set(self) -> dict[int, int]:
+        """Hash map from variable key to variable index."""
+        return {int(k): i for i, k in enumerate(self.keys.tolist())}
+
+    @property
+    def n_vars(self) -> int:
+        """Number of variables."""
+        return int(self.ids.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        """Length of the state vector."""
+        return int(self.x.shape[0])
+
+    @property
+    def pose_ids(self) -> IntArray:
+        """Ids of the pose variables, in state order."""
+        return self.ids[self.kinds == POSE]
+
+    @property
+    def feature_ids(self) -> IntArray:
+        """Ids of the feature variables, in state order."""
+        return self.ids[self.kinds == FEATURE]
+
+    def index_of(self, key: int) -> int | None:
+        """Return the variable index of ``key`` or ``None``."""
+        return self.key_set.get(int(key))
+
+    def has_pose(self, pose_id: int) -> bool:
+        """Return whether robot pose ``pose_id`` is a variable of this map."""
+        return pose_key(pose_id) in self.key_set
+
+    def scalar_slice(self, var_index: int) -> slice:
+        """Return the slice of :attr:`x` holding variable ``var_index``."""
+        off = int(self.offsets[var_index])
+        return slice(off, off + int(self.sizes[var_index]))
+
+    def scalar_index(self, var_indices: npt.ArrayLike | None = None) -> IntArray:
+        """Return the state indices of the given variables (all, in order, when ``None``)."""
+        if var_indices is None:
+            return np.arange(self.state_dim, dtype=np.int64)
+        vi = np.asarray(var_indices, dtype=np.int64)
+        sizes = self.sizes[vi]
+        starts = np.repeat(self.offsets[vi], sizes)
+        within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+        return starts + within
+
+    @functools.cached_property
+    def angles(self) -> npt.NDArray[np.bool_]:
+        """``(n,)`` mask of the pose-angle scalars of :attr:`x`."""
+        return angle_mask(self.dim, self.kinds)
+
+    def pose(self, pose_id: int) -> FloatArray:
+        """Return a copy of pose ``pose_id`` (``(3,)`` or ``(6,)``); the frame pose is the origin."""
+        if pose_id == self.frame_id:
+            return np.zeros(pose_size(self.dim))
+        idx = self.index_of(pose_key(pose_id))
+        if idx is None:
+            raise KeyError(f"pose {pose_id} is not in map {self.name!r}")
+        return self.x[self.scalar_slice(idx)].copy()
+
+
+@dataclass(frozen=True, eq=False)
+class LocalMap(VariableLayout):
+    """Estimate and information of a set of poses and features, in the frame of one pose.
+
+    Constructing a ``LocalMap`` validates it; :meth:`trusted` skips validation for results the
+    core computed itself.
+
+    Attributes:
+        dim: 2 or 3.
+        frame_id: id of the robot pose whose frame the variables are expressed in; not a variable.
+        end_id: id of the newest robot pose of the map (a pose variable, or the frame pose itself
+            for a map held in its robocentric end-pose frame); ``None`` when not known.
+        ids: ``(m,)`` variable ids.
+        kinds: ``(m,)`` variable kinds, :data:`POSE` or :data:`FEATURE`.
+        x: ``(n,)`` state vector: each pose ``x y phi`` (2D) or ``x y z alpha beta gamma`` (3D),
+            each feature ``x y [z]``, in metres and radians, in the frame of ``frame_id``.
+        info: ``(n, n)`` symmetric positive-definite information matrix, dense or CSR.
+        name: label used in error messages (e.g. ``"localmap_12"``).
+    """
+
+    dim: int
+    frame_id: int
+    end_id: int | None
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    x: FloatArray
+    info: InfoMatrix
+    name: str = "map"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "ids", np.ascontiguousarray(self.ids, dtype=np.int64))
+        object.__setattr__(self, "kinds", np.ascontiguousarray(self.kinds, dtype=np.int8))
+        object.__setattr__(self, "x", np.ascontiguousarray(self.x, dtype=np.float64))
+        self.validate()
+
+    @classmethod
+    def trusted(
+        cls,
+        dim: int,
+        frame_id: int,
+        end_id: int | None,
+        ids: IntArray,
+        kinds: npt.NDArray[np.int8],
+        x: FloatArray,
+        info: InfoMatrix,
+        name: str = "map",
+    ) -> "LocalMap":
+        """Build a map without validation (for values computed by the core itself)."""
+        obj = object.__new__(cls)
+        for field, value in (
+            ("dim", dim),
+            ("frame_id", int(frame_id)),
+            ("end_id", None if end_id is None else int(end_id)),
+            ("ids", ids),
+            ("kinds", kinds),
+            ("x", x),
+            ("info", info),
+            ("name", name),
+        ):
+            object.__setattr__(obj, field, value)
+        return obj
+
+    def replace(self, **changes: object) -> "LocalMap":
+        """Return a copy with some fields changed, without re-validating."""
+        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        values.update(changes)
+        return LocalMap.trusted(**values)  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------ validation
+
+    def validate(self) -> None:
+        """Check every invariant; raise :class:`InvalidMapError` naming the map and the fault."""
+        who = f"local map {self.name!r}"
+        if self.dim not in (2, 3):
+            raise InvalidMapError(f"{who}: dimension must be 2 or 3, got {self.dim!r}")
+        if self.ids.ndim != 1 or self.kinds.shape != self.ids.shape:
+            raise InvalidMapError(
+                f"{who}: ids and kinds must be 1-D of equal length, got {self.ids.shape} and {self.kinds.shape}"
+            )
+        bad_kind = ~np.isin(self.kinds, (POSE, FEATURE))
+        if bad_kind.any():
+            raise InvalidMapError(f"{who}: variable kind must be 0 (pose) or 1 (feature), got {self.kinds[bad_kind][0]}")
+        neg = (self.ids < 0) & (self.kinds == POSE)
+        if neg.any():
+            raise InvalidMapError(f"{who}: pose ids must be >= 0, got {self.ids[neg][0]}")
+        keys = self.keys
+        if len(np.unique(keys)) != len(keys):
+            uniq, counts = np.unique(keys, return_counts=True)
+            dup = int(uniq[counts > 1][0])
+            raise InvalidMapError(f"{who}: duplicate variable {_describe_key(dup)}")
+        if pose_key(self.frame_id) in self.key_set:
+            raise InvalidMapError(f"{who}: frame pose {self.frame_id} is also a variable of the map")
+        if self.end_id is not None and self.end_id != self.frame_id and pose_key(self.end_id) not in self.key_set:
+            raise InvalidMapError(f"{who}: end pose {self.end_id} is neither the frame pose nor a pose of the map")
+        n = int(self.sizes.sum())
+        if self.x.shape != (n,):
+            raise InvalidMapError(f"{who}: state has shape {self.x.shape}, the variables need ({n},)")
+        if self.info.shape != (n, n):
+            raise InvalidMapError(f"{who}: information matrix has shape {self.info.shape}, expected ({n}, {n})")
+        if not np.all(np.isfinite(self.x)):
+            bad = int(np.flatnonzero(~np.isfinite(self.x))[0])
+            raise InvalidMapError(f"{who}: state entry {bad} is not finite ({self.x[bad]})")
+        values = self.info.data if sp.issparse(self.info) else np.asarray(self.info)
+        if not np.all(np.isfinite(values)):
+            raise InvalidMapError(f"{who}: information matrix has non-finite entries")
+        _check_spd(self.info, who)
+
+    def info_dense(self) -> FloatArray:
+        """Return the information matrix as a dense array."""
+        return to_dense(self.info)
+
+    def info_csr(self) -> sp.csr_matrix:
+        """Return the information matrix as CSR."""
+        return to_csr(self.info)
+
+    def info_nnz(self) -> int:
+        """Return the number of stored non-zeros of the information matrix (dense: exact count)."""
+        if sp.issparse(self.info):
+            return int(self.info.count_nonzero())
+        return int(np.count_nonzero(self.info))
+
+
+def _describe_key(key: int) -> str:
+    kind = "pose" if key % 2 == POSE else "feature"
+    return f"{kind} {key // 2}"
+
+
+def _check_spd(info: InfoMatrix, who: str) -> None:
+    n = info.shape[0]
+    if n == 0:
+        return
+    if sp.issparse(info):
+        asym = abs(info - info.T)
+        scale = abs(info).max()
+        asym_max = asym.max() if asym.nnz else 0.0
+    else:
+        a = np.asarray(info)
+        scale = np.abs(a).max()
+        asym_max = np.abs(a - a.T).max()
+    if asym_max > _SYMMETRY_RTOL * max(scale, 1e-300):
+        raise InvalidMapError(f"{who}: information matrix is not symmetric (max |I - I^T| = {asym_max:.3g})")
+    if not sp.issparse(info) or n <= _DENSE_CHECK_MAX:
+        try:
+            scipy.linalg.cholesky(to_dense(info), lower=True, check_finite=False)
+        except np.linalg.LinAlgError:
+            raise InvalidMapError(f"{who}: information matrix is not positive definite") from None
+        return
+    try:
+        lu = spla.splu(
+            sp.csc_matrix(info), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+        )
+    except RuntimeError:
+        raise InvalidMapError(f"{who}: information matrix is singular") from None
+    if np.any(lu.U.diagonal() <= 0):
+        raise InvalidMapError(f"{who}: information matrix is not positive definite")

@@ -1,0 +1,172 @@
+"""The map-joining objective of eq. (7) over many local maps: residuals, Jacobian, weights.
+
+Each local map ``i`` is an observation of the global variables it holds, expressed in the frame
+of its frame pose: ``e_i = h_i(X) - x_i`` with ``h_i`` the change into that pose's frame and pose
+angle rows wrapped into ``(-pi, pi]``. The objective is ``sum_i e_i^T I_i e_i`` (the χ² of the
+datasets README). The global state ``X`` is a :class:`LocalMap`'s state in the frame of an
+origin pose that is not a variable.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+
+from linear_slam_ros.errors import FrameError
+from linear_slam_ros.geometry import points_to_frame, pose_size, poses_to_frame, wrap_angle
+from linear_slam_ros.local_map import POSE, LocalMap, pose_key, to_dense
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+def _block_triplets(row_starts: IntArray, nrows: int, col_starts: IntArray, ncols: int, blocks: FloatArray):
+    r = np.broadcast_to(row_starts[:, None, None] + np.arange(nrows)[None, :, None], blocks.shape)
+    c = np.broadcast_to(col_starts[:, None, None] + np.arange(ncols)[None, None, :], blocks.shape)
+    return r.ravel(), c.ravel(), blocks.ravel()
+
+
+@dataclass(frozen=True, eq=False)
+class MapObjective:
+    """Eq. (7) summed over local maps, for a fixed global variable layout.
+
+    Build with :meth:`build`. Attributes are index arrays over "records" (one per variable of
+    each local map) split into feature and pose records.
+    """
+
+    dim: int
+    n_state: int
+    origin_id: int
+    z: FloatArray
+    weight: sp.csr_matrix
+    angle_rows: npt.NDArray[np.bool_]
+    feat_rows: IntArray
+    feat_cols: IntArray
+    feat_ref: IntArray
+    pose_rows: IntArray
+    pose_cols: IntArray
+    pose_ref: IntArray
+
+    @classmethod
+    def build(cls, layout: LocalMap, maps: Sequence[LocalMap]) -> "MapObjective":
+        """Index every local map's variables into ``layout``'s state.
+
+        Args:
+            layout: a map whose variables include every variable and frame pose of ``maps``
+                (other than its own frame pose, the fixed origin).
+            maps: the local maps.
+
+        Raises:
+            FrameError: a local map's variable or frame pose is missing from ``layout``.
+        """
+        dim = layout.dim
+        p = pose_size(dim)
+        lookup = layout.key_set
+        offsets = layout.offsets
+        feat_rows, feat_cols, feat_ref, pose_rows, pose_cols, pose_ref = [], [], [], [], [], []
+        zs, infos, angle_rows = [], [], []
+        row = 0
+        for m in maps:
+            if m.frame_id == layout.frame_id:
+                ref = -1
+            else:
+                ref_idx = lookup.get(pose_key(m.frame_id))
+                if ref_idx is None:
+                    raise FrameError(f"frame pose {m.frame_id} of map {m.name!r} is not in map {layout.name!r}")
+                ref = int(offsets[ref_idx])
+            pos = np.fromiter((lookup.get(k, -1) for k in m.keys.tolist()), np.int64, count=m.n_vars)
+            if np.any(pos < 0):
+                missing = int(m.ids[pos < 0][0])
+                raise FrameError(f"variable {missing} of map {m.name!r} is not in map {layout.name!r}")
+            rows = row + m.offsets
+            is_pose = m.kinds == POSE
+            pose_rows.append(rows[is_pose])
+            pose_cols.append(offsets[pos[is_pose]])
+            pose_ref.append(np.full(int(is_pose.sum()), ref))
+            feat_rows.append(rows[~is_pose])
+            feat_cols.append(offsets[pos[~is_pose]])
+            feat_ref.append(np.full(int((~is_pose).sum()), ref))
+            zs.append(m.x)
+            infos.append(m.info if sp.issparse(m.info) else sp.csr_matrix(to_dense(m.info)))
+            angle_rows.append(m.angles)
+            row += m.state_dim
+        cat = lambda parts: np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)  # noqa: E731
+        return cls(
+            dim=dim,
+            n_state=layout.state_dim,
+            origin_id=layout.frame_id,
+            z=np.concatenate(zs),
+            weight=sp.block_diag(infos, format="csr"),
+            angle_rows=np.concatenate(angle_rows),
+            feat_rows=cat(feat_rows),
+            feat_cols=cat(feat_cols),
+            feat_ref=cat(feat_ref),
+            pose_rows=cat(pose_rows),
+            pose_cols=cat(pose_cols),
+            pose_ref=cat(pose_ref),
+        )
+
+    def _frames(self, x: FloatArray, ref: IntArray) -> tuple[FloatArray, FloatArray]:
+        p = pose_size(self.dim)
+        frames = np.zeros((ref.size, p))
+        has = ref >= 0
+        frames[has] = x[ref[has, None] + np.arange(p)]
+        return frames[:, : self.dim], frames[:, self.dim :]
+
+    def residuals(self, x: FloatArray, jacobian: bool = False) -> tuple[FloatArray, sp.csr_matrix | None]:
+        """Return the stacked residual ``h(X) - z`` (angles wrapped) and optionally ``dh/dX``."""
+        d, p = self.dim, pose_size(self.dim)
+        r = np.empty_like(self.z)
+        trip: list[tuple[IntArray, IntArray, FloatArray]] = []
+        if self.feat_rows.size:
+            t_f, a_f = self._frames(x, self.feat_ref)
+            pts = x[self.feat_cols[:, None] + np.arange(d)]
+            res = points_to_frame(d, t_f, a_f, pts)
+            idx = self.feat_rows[:, None] + np.arange(d)
+            r[idx] = res.points
+            if jacobian:
+                trip.append(_block_triplets(self.feat_rows, d, self.feat_cols, d, np.ascontiguousarray(res.d_point)))
+                has = self.feat_ref >= 0
+                trip.append(_block_triplets(self.feat_rows[has], d, self.feat_ref[has], p, res.d_frame[has]))
+        if self.pose_rows.size:
+            t_f, a_f = self._frames(x, self.pose_ref)
+            blk = x[self.pose_cols[:, None] + np.arange(p)]
+            res_p = poses_to_frame(d, t_f, a_f, blk[:, :d], blk[:, d:])
+            idx = self.pose_rows[:, None] + np.arange(p)
+            r[idx[:, :d]] = res_p.translations
+            r[idx[:, d:]] = res_p.angles
+            if jacobian:
+                trip.append(_block_triplets(self.pose_rows, p, self.pose_cols, p, res_p.d_pose))
+                has = self.pose_ref >= 0
+                trip.append(_block_triplets(self.pose_rows[has], p, self.pose_ref[has], p, res_p.d_frame[has]))
+        r -= self.z
+        r[self.angle_rows] = wrap_angle(r[self.angle_rows])
+        if not jacobian:
+            return r, None
+        rows = np.concatenate([t[0] for t in trip])
+        cols = np.concatenate([t[1] for t in trip])
+        vals = np.concatenate([t[2] for t in trip])
+        jac = sp.csr_matrix((vals, (rows, cols)), shape=(self.z.size, self.n_state))
+        return r, jac
+
+    def chi2(self, x: FloatArray) -> float:
+        """Return ``sum_i e_i^T I_i e_i`` at state ``x``."""
+        r, _ = self.residuals(x)
+        return float(r @ (self.weight @ r))
+
+
+def chi2(global_map: LocalMap, maps: Sequence[LocalMap]) -> float:
+    """Return the χ² of a joined map against all local maps (eq. 7 summed over every map).
+
+    The joined map may be in any frame that is one of its poses or the maps' first frame; it is
+    moved to the frame of ``maps[0]``'s frame pose first.
+    """
+    from linear_slam_ros.frames import change_frame
+
+    origin = maps[0].frame_id
+    layout = change_frame(global_map, origin) if global_map.frame_id != origin else global_map
+    return MapObjective.build(layout, maps).chi2(layout.x)

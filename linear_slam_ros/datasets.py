@@ -98,7 +98,7 @@ def parse_local_map_text(text: str, name: str) -> RawLocalMap:
         raise DatasetError(f"{name}: expected 'Ref' and 'n' at the top, found {nums.size} numbers")
     ref, n_f = nums[0], nums[1]
     if ref != int(ref) or n_f != int(n_f) or n_f < 1:
-        raise DatasetError(f"{name}: 'Ref' and 'n' must be integers with n >= 1, got {ref!r} and {n_f!r}")
+        raise DatasetError(f"{name}: 'Ref' and 'n' must be integers with n >= 1, got {float(ref):g} and {float(n_f):g}")
     n = int(n_f)
     expected = 2 + 2 * n + n * n
     if nums.size != expected:

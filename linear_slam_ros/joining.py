@@ -11,6 +11,7 @@ most pi (Remark 3).
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence
 
@@ -160,7 +161,7 @@ def join_sequential_information(maps: Iterable[LocalMap]) -> LocalMap:
 
 
 def join_divide_and_conquer(
-    maps: Sequence[LocalMap], on_join: Callable[[int], None] | None = None
+    maps: Sequence[LocalMap], on_join: Callable[[float], None] | None = None
 ) -> LocalMap:
     """Join maps by divide and conquer (Sec. 5.2): pair neighbours level by level.
 
@@ -168,7 +169,7 @@ def join_divide_and_conquer(
 
     Args:
         maps: local maps in order; map ``i + 1`` starts where map ``i`` ends.
-        on_join: called with 1 after every join (progress reporting).
+        on_join: called after every pairwise join with its wall time in seconds.
 
     Returns:
         The joined map in the frame of the last map's end pose.
@@ -179,9 +180,10 @@ def join_divide_and_conquer(
     while len(level) > 1:
         nxt = []
         for i in range(0, len(level) - 1, 2):
+            t0 = time.perf_counter()
             nxt.append(join_pair(level[i], level[i + 1]))
             if on_join is not None:
-                on_join(1)
+                on_join(time.perf_counter() - t0)
         if len(level) % 2:
             nxt.append(level[-1])
         level = nxt

@@ -78,14 +78,19 @@ class MapObjective:
                 if ref_idx is None:
                     raise FrameError(f"frame pose {m.frame_id} of map {m.name!r} is not in map {layout.name!r}")
                 ref = int(offsets[ref_idx])
-            pos = np.fromiter((lookup.get(k, -1) for k in m.keys.tolist()), np.int64, count=m.n_vars)
-            if np.any(pos < 0):
-                missing = int(m.ids[pos < 0][0])
+            # the layout's own frame pose is the fixed origin: index -2, no columns
+            origin_key = pose_key(layout.frame_id)
+            pos = np.fromiter(
+                (-2 if k == origin_key else lookup.get(k, -1) for k in m.keys.tolist()), np.int64, count=m.n_vars
+            )
+            if np.any(pos == -1):
+                missing = int(m.ids[pos == -1][0])
                 raise FrameError(f"variable {missing} of map {m.name!r} is not in map {layout.name!r}")
             rows = row + m.offsets
             is_pose = m.kinds == POSE
             pose_rows.append(rows[is_pose])
-            pose_cols.append(offsets[pos[is_pose]])
+            pose_pos = pos[is_pose]
+            pose_cols.append(np.where(pose_pos >= 0, offsets[np.maximum(pose_pos, 0)], -1))
             pose_ref.append(np.full(int(is_pose.sum()), ref))
             feat_rows.append(rows[~is_pose])
             feat_cols.append(offsets[pos[~is_pose]])
@@ -111,6 +116,7 @@ class MapObjective:
         )
 
     def _frames(self, x: FloatArray, ref: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Gather poses starting at offsets ``ref`` (``-1``: the origin, a zero pose)."""
         p = pose_size(self.dim)
         frames = np.zeros((ref.size, p))
         has = ref >= 0
@@ -134,13 +140,14 @@ class MapObjective:
                 trip.append(_block_triplets(self.feat_rows[has], d, self.feat_ref[has], p, res.d_frame[has]))
         if self.pose_rows.size:
             t_f, a_f = self._frames(x, self.pose_ref)
-            blk = x[self.pose_cols[:, None] + np.arange(p)]
-            res_p = poses_to_frame(d, t_f, a_f, blk[:, :d], blk[:, d:])
+            t_v, a_v = self._frames(x, self.pose_cols)  # the origin (-1) is the zero pose
+            res_p = poses_to_frame(d, t_f, a_f, t_v, a_v)
             idx = self.pose_rows[:, None] + np.arange(p)
             r[idx[:, :d]] = res_p.translations
             r[idx[:, d:]] = res_p.angles
             if jacobian:
-                trip.append(_block_triplets(self.pose_rows, p, self.pose_cols, p, res_p.d_pose))
+                var = self.pose_cols >= 0
+                trip.append(_block_triplets(self.pose_rows[var], p, self.pose_cols[var], p, res_p.d_pose[var]))
                 has = self.pose_ref >= 0
                 trip.append(_block_triplets(self.pose_rows[has], p, self.pose_ref[has], p, res_p.d_frame[has]))
         r -= self.z

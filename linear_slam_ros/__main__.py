@@ -1,0 +1,7 @@
+"""``python -m linear_slam_ros``: the offline command line (see :mod:`linear_slam_ros.cli`)."""
+
+import sys
+
+from linear_slam_ros.cli import main
+
+sys.exit(main())

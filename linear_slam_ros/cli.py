@@ -1,0 +1,165 @@
+"""Offline command line: ``python -m linear_slam_ros join|refine|benchmark ...``.
+
+Only parses arguments and calls library functions; everything it does is scriptable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from linear_slam_ros.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
+from linear_slam_ros.errors import LinearSlamError
+from linear_slam_ros.frames import change_frame
+from linear_slam_ros.local_map import FEATURE, LocalMap
+from linear_slam_ros.metrics import latency_summary
+from linear_slam_ros.nonlinear import refine
+from linear_slam_ros.objective import chi2
+from linear_slam_ros.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+
+logger = logging.getLogger("linear_slam_ros")
+
+PROGRESS_MIN_MAPS = 100
+"""Show a progress bar when joining at least this many local maps."""
+
+
+def _progress(total: int, desc: str):  # type: ignore[no-untyped-def]
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="map", disable=None if total >= PROGRESS_MIN_MAPS else True, leave=False)
+
+
+def write_result(out_dir: Path, joined: LocalMap, origin_id: int) -> LocalMap:
+    """Write ``poses.txt`` and (with features) ``features.txt`` in the frame of ``origin_id``."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    in_origin = joined if joined.frame_id == origin_id else change_frame(joined, origin_id)
+    write_poses(out_dir / "poses.txt", in_origin, origin_id)
+    if (in_origin.kinds == FEATURE).any():
+        write_features(out_dir / "features.txt", in_origin)
+    return in_origin
+
+
+def join_dataset(dataset: Dataset, method: JoinMethod) -> JoinRun:
+    """Join a dataset's local maps with a progress bar on long runs."""
+    n_steps = len(dataset.maps) - 1 if method is JoinMethod.DC else len(dataset.maps)
+    with _progress(n_steps, f"{method.value} {dataset.name}") as bar:
+        return run_join(dataset.maps, method, progress=bar.update)
+
+
+def report_for(run: JoinRun, dataset: Dataset, chi2_value: float) -> dict[str, object]:
+    """Return the report dictionary of a joining run."""
+    return {
+        "dataset": dataset.name,
+        "kind": dataset.kind.value,
+        "method": run.method.value,
+        "n_submaps": run.n_submaps,
+        "state_dim": run.result.state_dim,
+        "seconds": run.seconds,
+        **latency_summary(run.step_seconds),
+        "latency_unit": "per pairwise join" if run.method is JoinMethod.DC else "per submap",
+        "peak_rss_mb": peak_rss_mb(),
+        "chi2": chi2_value,
+        "info_nnz": run.result.info_nnz(),
+    }
+
+
+def cmd_join(args: argparse.Namespace) -> int:
+    """Join a dataset and write poses, features and report.json."""
+    dataset = read_dataset(args.dataset, kind=args.kind)
+    method = JoinMethod(args.method)
+    run = join_dataset(dataset, method)
+    origin = dataset.maps[0].frame_id
+    in_origin = write_result(args.out, run.result, origin)
+    report = report_for(run, dataset, chi2(in_origin, dataset.maps))
+    _write_report(args.out, report)
+    logger.info(
+        "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
+        run.seconds, report["chi2"],
+    )
+    return 0
+
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    """Join, then refine by Gauss-Newton (Nonlinear LS), and write the refined result."""
+    dataset = read_dataset(args.dataset, kind=args.kind)
+    method = JoinMethod(args.method)
+    run = join_dataset(dataset, method)
+    origin = dataset.maps[0].frame_id
+    t0 = time.perf_counter()
+    refined = refine(run.result, dataset.maps)
+    seconds_refine = time.perf_counter() - t0
+    write_result(args.out, refined.map, origin)
+    report = report_for(run, dataset, refined.chi2)
+    report.update(
+        {
+            "linear_chi2": refined.chi2_history[0],
+            "refine_seconds": seconds_refine,
+            "refine_iterations": refined.iterations,
+            "refine_converged": refined.converged,
+            "info_nnz": refined.map.info_nnz(),
+            "state_dim": refined.map.state_dim,
+        }
+    )
+    _write_report(args.out, report)
+    logger.info("%s: Nonlinear LS chi2 %.3f after %d iterations", dataset.name, refined.chi2, refined.iterations)
+    return 0
+
+
+def cmd_benchmark(args: argparse.Namespace) -> int:
+    """Run the benchmark over every dataset (see :mod:`linear_slam_ros.benchmark`)."""
+    from linear_slam_ros.benchmark import run_benchmark
+
+    run_benchmark(args.datasets_dir, args.out, methods=args.methods, only=args.only)
+    return 0
+
+
+def _write_report(out_dir: Path, report: dict[str, object]) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Return the argument parser of ``python -m linear_slam_ros``."""
+    parser = argparse.ArgumentParser(prog="python -m linear_slam_ros", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def common(p: argparse.ArgumentParser) -> None:
+        p.add_argument("dataset", type=Path, help="folder of localmap_<i>.txt files or a .tar.xz archive")
+        p.add_argument("--method", choices=[m.value for m in JoinMethod], default=JoinMethod.DC.value)
+        p.add_argument("--kind", choices=[k.value for k in MapKind], default=None, help="override the detected map kind")
+        p.add_argument("--out", type=Path, required=True, help="output folder")
+
+    p_join = sub.add_parser("join", help="join a dataset's local maps")
+    common(p_join)
+    p_join.set_defaults(func=cmd_join)
+    p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)")
+    common(p_ref)
+    p_ref.set_defaults(func=cmd_refine)
+    p_bench = sub.add_parser("benchmark", help="every dataset with every method; figures to --out")
+    p_bench.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
+    p_bench.add_argument("--out", type=Path, default=Path("out/benchmark"))
+    p_bench.add_argument("--methods", nargs="+", default=[m.value for m in JoinMethod])
+    p_bench.add_argument("--only", nargs="+", default=None, help="dataset names to run (default: all)")
+    p_bench.set_defaults(func=cmd_benchmark)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the process exit code (2 for bad input)."""
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args))
+    except LinearSlamError as exc:
+        logger.error("%s", exc)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

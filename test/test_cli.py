@@ -1,0 +1,49 @@
+"""The offline command line: outputs, report, error exit code."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from conftest import CACHE, dataset_archive
+from linear_slam_ros.cli import main
+from linear_slam_ros.datasets import read_rows
+
+REPORT_KEYS = {
+    "method", "n_submaps", "state_dim", "seconds", "per_submap_ms_p50", "per_submap_ms_p99",
+    "per_submap_ms_max", "peak_rss_mb", "chi2", "info_nnz",
+}
+
+
+@pytest.fixture(autouse=True)
+def _cache(monkeypatch):
+    monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
+
+
+@pytest.mark.parametrize("method", ["sequential", "dc", "online-dc"])
+def test_join_writes_reference_format_and_report(method, tmp_path):
+    out = tmp_path / method
+    assert main(["join", str(dataset_archive("8240_data_50_local_maps")), "--method", method, "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert REPORT_KEYS <= set(report)
+    assert report["method"] == method and report["n_submaps"] == 50
+    poses = read_rows(out / "poses.txt")
+    assert sorted(poses)[:3] == [0, 1, 2] and len(poses[1]) == 3
+    assert list(poses[0]) == [0.0, 0.0, 0.0]
+    assert len(read_rows(out / "features.txt")) > 100
+    expected = {"sequential": 1399.6, "dc": 528.7, "online-dc": 528.7}[method]
+    assert report["chi2"] == pytest.approx(expected, rel=0.01)
+
+
+def test_refine_and_pose_only_kind(tmp_path):
+    assert main(["refine", str(dataset_archive("Intel")), "--out", str(tmp_path)]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["kind"] == "2DPG" and report["chi2"] == pytest.approx(546.46, rel=0.005)
+    assert report["linear_chi2"] == pytest.approx(546.51, rel=0.005)
+    assert not (tmp_path / "features.txt").exists()
+
+
+def test_bad_dataset_exits_2_with_a_message(tmp_path, caplog):
+    assert main(["join", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "neither a folder nor a .tar.xz archive" in caplog.text

@@ -1,0 +1,147 @@
+"""Dataset reading and writing: format errors, kind detection, archives, round trips."""
+
+from __future__ import annotations
+
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.datasets import (
+    MapKind,
+    detect_kind,
+    format_local_map,
+    parse_local_map_text,
+    read_dataset,
+    read_rows,
+    to_local_map,
+    write_dataset,
+    write_features,
+    write_poses,
+)
+from linear_slam_ros.errors import DatasetError, InvalidMapError
+from linear_slam_ros.local_map import FEATURE, POSE
+from linear_slam_ros.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
+
+PF_TEXT = """0
+5
+-1 1.0
+-1 0.5
+-1 0.1
+7 2.0
+7 3.0
+""" + "\n".join(" ".join("10" if i == j else "0" for j in range(5)) for i in range(5))
+
+
+def test_parse_and_interpret_pose_feature_map():
+    raw = parse_local_map_text(PF_TEXT, "localmap_1")
+    assert detect_kind(raw) is MapKind.PF2D
+    m = to_local_map(raw, MapKind.PF2D)
+    np.testing.assert_array_equal(m.ids, [1, 7])
+    np.testing.assert_array_equal(m.kinds, [POSE, FEATURE])
+    assert m.frame_id == 0 and m.end_id == 1
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("", "expected 'Ref' and 'n'"),
+        ("0 0", "'Ref' and 'n' must be integers with n >= 1, got 0 and 0"),
+        ("0.5 1 1 0 1", "'Ref' and 'n' must be integers"),
+        ("0 2 1 0 1 0 1 0", "n = 2 needs 10 numbers \\(2 \\+ 2n \\+ n\\^2\\), found 8"),
+        ("0 1 1.5 0 1", "variable ids must be integers"),
+    ],
+)
+def test_parse_errors_name_the_file(text, match):
+    with pytest.raises(DatasetError, match="localmap_9: " + match):
+        parse_local_map_text(text, "localmap_9")
+
+
+def test_variable_size_mismatch_is_rejected():
+    text = "0 3 -1 1 -1 2 -1 3 " + " ".join("1" if i == j else "0" for i in range(3) for j in range(3))
+    raw = parse_local_map_text(text, "localmap_2")
+    with pytest.raises(DatasetError, match="localmap_2: variable -1 spans 3 lines, a 3DPF pose needs 6"):
+        to_local_map(raw, MapKind.PF3D)
+
+
+def test_unknown_sizes_cannot_be_detected():
+    text = "0 4 3 1 3 1 3 1 3 1 " + " ".join("1" if i == j else "0" for i in range(4) for j in range(4))
+    with pytest.raises(DatasetError, match="cannot tell the map kind from variable sizes \\[4\\]"):
+        detect_kind(parse_local_map_text(text, "localmap_3"))
+
+
+def test_repeated_pose_is_fused_exactly():
+    # pose 5 listed twice (two edges), with information 1 and 3: fused estimate is the weighted mean
+    vals = [1.0, 2.0, 0.1, 2.0, 2.0, 0.3]
+    info = np.diag([1.0, 1, 1, 3, 3, 3])
+    text = "0 6 " + " ".join(f"5 {v}" for v in vals) + " " + " ".join(map(str, info.ravel()))
+    m = to_local_map(parse_local_map_text(text, "localmap_4"), MapKind.PG2D)
+    np.testing.assert_array_equal(m.ids, [5])
+    np.testing.assert_allclose(m.x, [1.75, 2.0, 0.25])
+    np.testing.assert_allclose(m.info_dense(), np.diag([4.0, 4, 4]))
+
+
+def test_invalid_map_in_file_is_rejected(tmp_path):
+    bad = PF_TEXT.replace("10", "-10", 1)
+    (tmp_path / "localmap_1.txt").write_text(bad)
+    with pytest.raises(InvalidMapError, match="local map 'localmap_1': information matrix is not positive definite"):
+        read_dataset(tmp_path)
+
+
+@pytest.mark.parametrize("kind", [MapKind.PF2D, MapKind.PF3D, MapKind.PG2D, MapKind.PG3D])
+def test_write_then_read_round_trip(kind, tmp_path, rng):
+    world = make_world(kind.dim, 10, 12, rng)
+    maps = exact_local_maps(world, rng, 2) if kind.has_features else exact_pose_graph_maps(world, rng)
+    write_dataset(maps, tmp_path / "ds", kind)
+    back = read_dataset(tmp_path / "ds")
+    assert back.kind is kind and len(back.maps) == len(maps)
+    for a, b in zip(maps, back.maps):
+        np.testing.assert_array_equal(a.ids, b.ids)
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.info_dense(), b.info_dense())
+        assert (a.frame_id, a.end_id) == (b.frame_id, b.end_id)
+
+
+def test_archive_is_unpacked_into_cache(tmp_path, rng):
+    world = make_world(2, 6, 5, rng)
+    write_dataset(exact_local_maps(world, rng, 2), tmp_path / "tiny", MapKind.PF2D)
+    archive = tmp_path / "tiny.tar.xz"
+    with tarfile.open(archive, "w:xz") as tar:
+        tar.add(tmp_path / "tiny", arcname="tiny")
+    ds = read_dataset(archive, cache_dir=tmp_path / "cache")
+    assert ds.name == "tiny" and len(ds.maps) == 3
+    assert (tmp_path / "cache" / "tiny" / ".complete").exists()
+    assert len(read_dataset(archive, cache_dir=tmp_path / "cache").maps) == 3  # from the cache
+
+
+def test_missing_numbers_and_paths_are_reported(tmp_path):
+    with pytest.raises(DatasetError, match="neither a folder nor a .tar.xz archive"):
+        read_dataset(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="no localmap_<i>.txt files"):
+        read_dataset(tmp_path / "empty")
+    (tmp_path / "gap").mkdir()
+    for i in (1, 3):
+        (tmp_path / "gap" / f"localmap_{i}.txt").write_text(PF_TEXT)
+    with pytest.raises(DatasetError, match=r"not numbered 1..N \(missing \[2\]\)"):
+        read_dataset(tmp_path / "gap")
+    bad = tmp_path / "bad.tar.xz"
+    bad.write_bytes(b"not an archive")
+    with pytest.raises(DatasetError, match="cannot unpack"):
+        read_dataset(bad, cache_dir=tmp_path / "c")
+
+
+def test_poses_and_features_files(tmp_path, rng):
+    world = make_world(2, 6, 5, rng)
+    m = exact_local_maps(world, rng, 6, sensor_range=30)[0]
+    write_poses(tmp_path / "poses.txt", m)
+    write_features(tmp_path / "features.txt", m)
+    poses = read_rows(tmp_path / "poses.txt")
+    assert sorted(poses) == list(range(7))
+    np.testing.assert_allclose(poses[3], world.poses[3], atol=1e-12)
+    feats = read_rows(tmp_path / "features.txt")
+    np.testing.assert_allclose(feats[2], world.features[2], atol=1e-12)
+    with pytest.raises(InvalidMapError, match="poses must be written in the frame of pose 2"):
+        write_poses(tmp_path / "p.txt", m, origin_id=2)
+    assert format_local_map(m, MapKind.PF2D).startswith("0\n")

@@ -1,0 +1,75 @@
+"""Closed-form change of frame: round trips, Jacobians, information transport (eq. 20)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from linear_slam_ros.errors import FrameError
+from linear_slam_ros.frames import change_frame, frame_layout, reframe, reframe_jacobian, transform_information
+from linear_slam_ros.synthetic import exact_local_maps, make_world
+
+
+def _map(dim, rng, poses_per_map=4):
+    world = make_world(dim, 12, 15, rng)
+    return exact_local_maps(world, rng, poses_per_map=poses_per_map, sensor_range=8.0)[1]
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_round_trip_restores_state_and_information(dim, rng):
+    m = _map(dim, rng)
+    other = int(m.pose_ids[0])
+    there = change_frame(m, other)
+    assert there.frame_id == other and there.has_pose(m.frame_id)
+    back = change_frame(there, m.frame_id)
+    np.testing.assert_array_equal(back.ids, m.ids)
+    np.testing.assert_allclose(back.x, m.x, atol=1e-12)
+    np.testing.assert_allclose(back.info_dense(), m.info_dense(), rtol=1e-10, atol=1e-8)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_reframe_jacobian_against_finite_differences(dim, rng):
+    m = _map(dim, rng)
+    layout = frame_layout(dim, m.kinds, 1)
+    jac = reframe_jacobian(dim, m.x, layout).dense(m.state_dim)
+    numeric = np.zeros_like(jac)
+    for k in range(m.state_dim):
+        dx = np.zeros(m.state_dim)
+        dx[k] = 1e-6
+        numeric[:, k] = (reframe(dim, m.x + dx, layout) - reframe(dim, m.x - dx, layout)) / 2e-6
+    np.testing.assert_allclose(jac, numeric, atol=1e-6)
+    sparse = reframe_jacobian(dim, m.x, layout).csr(m.state_dim)
+    np.testing.assert_allclose(sparse.toarray(), jac, atol=0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_forward_and_reverse_jacobians_are_inverse(dim, rng):
+    m = _map(dim, rng)
+    layout = frame_layout(dim, m.kinds, 0)
+    x_new = reframe(dim, m.x, layout)
+    h = reframe_jacobian(dim, m.x, layout).dense(m.state_dim)
+    g = reframe_jacobian(dim, x_new, layout).dense(m.state_dim)
+    np.testing.assert_allclose(g @ h, np.eye(m.state_dim), atol=1e-10)
+
+
+def test_information_transport_dense_and_sparse_agree(rng):
+    m = _map(2, rng, poses_per_map=6)
+    layout = frame_layout(2, m.kinds, 0)
+    back = reframe_jacobian(2, reframe(2, m.x, layout), layout)
+    dense = transform_information(m.info_dense(), back)
+    sparse = transform_information(sp.csr_matrix(m.info_dense()), back)
+    np.testing.assert_allclose(sparse.toarray(), dense, rtol=1e-12, atol=1e-9)
+    g = back.dense(m.state_dim)
+    np.testing.assert_allclose(dense, g.T @ m.info_dense() @ g, rtol=1e-12, atol=1e-9)
+
+
+def test_same_frame_is_identity(rng):
+    m = _map(2, rng)
+    assert change_frame(m, m.frame_id) is m
+
+
+def test_unknown_frame_pose_is_rejected(rng):
+    m = _map(2, rng)
+    with pytest.raises(FrameError, match=f"to the frame of pose 999: that pose is not in the map"):
+        change_frame(m, 999)

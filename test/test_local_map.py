@@ -1,0 +1,83 @@
+"""LocalMap validation: every invariant has an error naming the map and the fault."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from linear_slam_ros.errors import InvalidMapError
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, angle_mask
+
+
+def _good(**over):
+    kw = dict(
+        dim=2,
+        frame_id=0,
+        end_id=1,
+        ids=np.array([1, 7]),
+        kinds=np.array([POSE, FEATURE], dtype=np.int8),
+        x=np.array([1.0, 0.0, 0.1, 2.0, 3.0]),
+        info=np.eye(5) * 10,
+        name="lm",
+    )
+    kw.update(over)
+    return LocalMap(**kw)
+
+
+def test_valid_map_layout():
+    m = _good()
+    assert m.state_dim == 5 and m.n_vars == 2
+    np.testing.assert_array_equal(m.offsets, [0, 3])
+    assert m.has_pose(1) and not m.has_pose(7)
+    np.testing.assert_array_equal(m.pose(1), [1.0, 0.0, 0.1])
+    np.testing.assert_array_equal(m.pose(0), [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(m.angles, [False, False, True, False, False])
+    np.testing.assert_array_equal(m.scalar_index([1]), [3, 4])
+    assert m.info_nnz() == 5
+
+
+def test_sparse_information_is_accepted():
+    assert _good(info=sp.csr_matrix(np.eye(5) * 3)).info_nnz() == 5
+
+
+@pytest.mark.parametrize(
+    "over, match",
+    [
+        (dict(dim=4), "'lm': dimension must be 2 or 3, got 4"),
+        (dict(kinds=np.array([POSE], dtype=np.int8)), "ids and kinds must be 1-D of equal length"),
+        (dict(kinds=np.array([POSE, 5], dtype=np.int8)), "variable kind must be 0 \\(pose\\) or 1 \\(feature\\), got 5"),
+        (dict(ids=np.array([-1, 7])), "pose ids must be >= 0, got -1"),
+        (dict(ids=np.array([1, 1]), kinds=np.array([POSE, POSE], dtype=np.int8), x=np.zeros(6), info=np.eye(6)), "duplicate variable pose 1"),
+        (dict(frame_id=1, end_id=None), "frame pose 1 is also a variable"),
+        (dict(end_id=9), "end pose 9 is neither the frame pose nor a pose of the map"),
+        (dict(x=np.zeros(4)), "state has shape \\(4,\\), the variables need \\(5,\\)"),
+        (dict(info=np.eye(4)), "information matrix has shape \\(4, 4\\), expected \\(5, 5\\)"),
+        (dict(x=np.array([1.0, np.nan, 0, 0, 0])), "state entry 1 is not finite"),
+        (dict(info=np.diag([1.0, 1, 1, 1, np.inf])), "non-finite entries"),
+        (dict(info=np.eye(5) + np.triu(np.ones((5, 5)), 1)), "not symmetric"),
+        (dict(info=np.diag([1.0, 1, 1, 1, -1])), "not positive definite"),
+    ],
+)
+def test_each_invariant_is_checked(over, match):
+    with pytest.raises(InvalidMapError, match=match):
+        _good(**over)
+
+
+def test_large_sparse_not_spd_is_rejected():
+    n = 3001 * 2
+    ids = np.arange(1, 3002)
+    diag = np.ones(n)
+    diag[-1] = -1.0
+    with pytest.raises(InvalidMapError, match="not positive definite"):
+        LocalMap(2, 0, None, ids, np.full(3001, FEATURE, np.int8), np.zeros(n), sp.diags(diag).tocsr(), name="big")
+
+
+def test_angle_mask_3d():
+    mask = angle_mask(3, np.array([POSE, FEATURE], dtype=np.int8))
+    np.testing.assert_array_equal(np.flatnonzero(mask), [3, 4, 5])
+
+
+def test_pose_lookup_error_names_the_map():
+    with pytest.raises(KeyError, match="pose 5 is not in map 'lm'"):
+        _good().pose(5)

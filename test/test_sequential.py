@@ -1,0 +1,71 @@
+"""Exact sequential joining in covariance form equals the paper's information-form recursion."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.errors import FrameError, InvalidMapError
+from linear_slam_ros.joining import join_sequential_information
+from linear_slam_ros.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
+from linear_slam_ros.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_covariance_form_equals_information_form(dim, rng):
+    world = make_world(dim, 24, 30, rng, loops=1.2)
+    maps = noisy_local_maps(world, rng, steps_per_map=2)
+    fast = join_sequential(maps)
+    literal = join_sequential_information(maps)
+    np.testing.assert_array_equal(fast.ids, literal.ids)
+    np.testing.assert_allclose(fast.x, literal.x, atol=1e-9)
+    scale = np.abs(literal.info_dense()).max()
+    np.testing.assert_allclose(fast.info_dense() / scale, literal.info_dense() / scale, atol=1e-9)
+
+
+def test_covariance_form_on_pose_graphs_with_loops(rng):
+    world = make_world(2, 30, 0, rng, loops=1.4)
+    maps = exact_pose_graph_maps(world, rng, loop_every=3, loop_span=5)
+    maps = [m.replace(x=m.x + rng.normal(scale=0.02, size=m.state_dim)) for m in maps]
+    fast = join_sequential(maps)
+    literal = join_sequential_information(maps)
+    np.testing.assert_allclose(fast.x, literal.x, atol=1e-9)
+
+
+def test_covariance_map_frame_change_round_trip(rng):
+    world = make_world(3, 12, 15, rng)
+    maps = noisy_local_maps(world, rng, steps_per_map=3)
+    state = SequentialState()
+    for m in maps:
+        state = sequential_step(state, m)
+    g = state.global_map
+    there = g.change_frame(0)
+    back = there.change_frame(g.frame_id)
+    np.testing.assert_allclose(back.x, g.x, atol=1e-10)
+    np.testing.assert_allclose(back.cov, g.cov, atol=1e-10)
+    assert CovarianceMap.from_local_map(g.to_local_map()).cov == pytest.approx(g.cov, abs=1e-9)
+
+
+def test_step_is_pure_and_rejects_a_foreign_frame(rng):
+    world = make_world(2, 16, 12, rng)
+    maps = noisy_local_maps(world, rng, steps_per_map=2)
+    state = sequential_step(sequential_step(SequentialState(), maps[0]), maps[1])
+    snapshot = (state.global_map.x.copy(), state.global_map.cov.copy())
+    with pytest.raises(FrameError, match="submap 'noisy_5' is in the frame of pose 8, which is not in the global map \\(frame pose 4\\)"):
+        sequential_step(state, maps[4])
+    sequential_step(state, maps[2])  # a successful step leaves the input state untouched too
+    np.testing.assert_array_equal(state.global_map.x, snapshot[0])
+    np.testing.assert_array_equal(state.global_map.cov, snapshot[1])
+    assert state.n_joined == 2
+
+
+def test_dimension_mismatch_and_empty_input(rng):
+    m2 = noisy_local_maps(make_world(2, 6, 6, rng), rng, 2)
+    m3 = noisy_local_maps(make_world(3, 6, 6, rng), rng, 2)
+    state = sequential_step(SequentialState(), m2[0])
+    with pytest.raises(InvalidMapError, match="submap 'noisy_2' is 3D, the global map is 2D"):
+        sequential_step(state, m3[1])
+    with pytest.raises(InvalidMapError, match="no local maps to join"):
+        join_sequential([])
+    with pytest.raises(FrameError, match="pose 99 is not in the global map"):
+        state.global_map.change_frame(99)

@@ -1,4 +1,4 @@
-"""Offline command line: ``python -m linear_slam_ros join|refine|benchmark ...``.
+"""Offline command line: ``python -m linear_slam_ros join|refine|unpack|benchmark ...``.
 
 Only parses arguments and calls library functions; everything it does is scriptable.
 """
@@ -110,6 +110,19 @@ def cmd_refine(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_unpack(args: argparse.Namespace) -> int:
+    """Unpack every ``*.tar.xz`` dataset of a folder into the cache (idempotent)."""
+    from linear_slam_ros.datasets import resolve_dataset_dir
+
+    archives = sorted(Path(args.datasets_dir).glob("*.tar.xz"))
+    if not archives:
+        logger.error("no *.tar.xz datasets in %s", args.datasets_dir)
+        return 2
+    for archive in archives:
+        logger.info("%s -> %s", archive.name, resolve_dataset_dir(archive))
+    return 0
+
+
 def cmd_benchmark(args: argparse.Namespace) -> int:
     """Run the benchmark over every dataset (see :mod:`linear_slam_ros.benchmark`)."""
     from linear_slam_ros.benchmark import run_benchmark
@@ -141,6 +154,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)")
     common(p_ref)
     p_ref.set_defaults(func=cmd_refine)
+    p_unpack = sub.add_parser("unpack", help="unpack every dataset archive into .cache/datasets")
+    p_unpack.add_argument("datasets_dir", type=Path, nargs="?", default=Path("../shared/datasets"))
+    p_unpack.set_defaults(func=cmd_unpack)
     p_bench = sub.add_parser("benchmark", help="every dataset with every method; figures to --out")
     p_bench.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
     p_bench.add_argument("--out", type=Path, default=Path("out/benchmark"))

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 
 from linear_slam_ros.errors import DatasetError, InvalidMapError
 from linear_slam_ros.geometry import pose_size, wrap_angle
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, var_keys
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, default_end_pose, fuse_repeated, var_keys
 from linear_slam_ros.solvers import DENSE_MAX
 
 logger = logging.getLogger(__name__)
@@ -168,53 +168,11 @@ def to_local_map(raw: RawLocalMap, kind: MapKind) -> LocalMap:
     values, info = raw.values, 0.5 * (raw.info + raw.info.T)
     keys = var_keys(var_ids, kinds)
     if np.unique(keys).size != keys.size:
-        var_ids, kinds, values, info = _fuse_duplicates(raw.name, dim, var_ids, kinds, values, info)
+        var_ids, kinds, values, info = fuse_repeated(raw.name, dim, var_ids, kinds, values, info)
     pose_ids = var_ids[kinds == POSE]
-    if kind.has_features:
-        end_id = int(pose_ids.max()) if pose_ids.size else None
-    else:
-        end_id = frame_id + 1 if np.any(pose_ids == frame_id + 1) else (int(pose_ids.max()) if pose_ids.size else None)
+    end_id = int(pose_ids.max()) if kind.has_features and pose_ids.size else default_end_pose(frame_id, pose_ids)
     stored: FloatArray | sp.csr_matrix = sp.csr_matrix(info) if info.shape[0] > DENSE_MAX else info
     return LocalMap(dim, frame_id, end_id, var_ids, kinds, values, stored, name=raw.name)
-
-
-def _fuse_duplicates(
-    name: str, dim: int, var_ids: npt.NDArray[np.int64], kinds: npt.NDArray[np.int8], values: FloatArray, info: FloatArray
-) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int8], FloatArray, FloatArray]:
-    """Fuse repeated variables of one file into one (two edges to the same pose, as in Intel).
-
-    Two observations ``z_1, z_2`` of one variable with joint information ``I`` are the linear
-    observation ``A v`` with ``A = [E; E]``; they are replaced by the equivalent single one,
-    ``I_f = A^T I A`` and ``z_f = I_f^-1 A^T I z``. The objective changes only by a constant
-    (zero when the repeats agree, as in the benchmark data).
-    """
-    keys = var_keys(var_ids, kinds)
-    uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    order = np.argsort(first)  # keep first-appearance order
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    target = rank[inverse]  # fused variable index of each raw variable
-    sizes = np.where(kinds == POSE, pose_size(dim), dim)
-    raw_off = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    fused_kinds = kinds[first[order]]
-    fused_ids = var_ids[first[order]]
-    fused_sizes = np.where(fused_kinds == POSE, pose_size(dim), dim)
-    fused_off = np.concatenate([[0], np.cumsum(fused_sizes)[:-1]])
-    n_raw, n_f = int(sizes.sum()), int(fused_sizes.sum())
-    sel = np.zeros((n_raw, n_f))
-    z = values.copy()
-    for v in range(var_ids.size):
-        for j in range(int(sizes[v])):
-            sel[raw_off[v] + j, fused_off[target[v]] + j] = 1.0
-        first_v = int(first[inverse[v]])
-        if first_v != v and kinds[v] == POSE:
-            a = slice(raw_off[v] + dim, raw_off[v] + sizes[v])
-            ref = z[raw_off[first_v] + dim : raw_off[first_v] + sizes[v]]
-            z[a] = ref + wrap_angle(z[a] - ref)
-    info_f = sel.T @ info @ sel
-    z_f = np.linalg.solve(info_f, sel.T @ (info @ z))
-    logger.warning("%s: fused %d repeated variable(s) into one each", name, var_ids.size - uniq.size)
-    return fused_ids, fused_kinds, z_f, 0.5 * (info_f + info_f.T)
 
 
 def _unpack(archive: Path, cache_dir: Path) -> Path:

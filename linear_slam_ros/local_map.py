@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 from dataclasses import dataclass
 from typing import Union
 
@@ -21,7 +22,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from linear_slam_ros.errors import InvalidMapError
-from linear_slam_ros.geometry import angle_size, point_size, pose_size
+from linear_slam_ros.geometry import angle_size, point_size, pose_size, wrap_angle
+
+logger = logging.getLogger(__name__)
 
 POSE: int = 0
 """Kind code of a robot pose variable."""
@@ -326,3 +329,52 @@ def _check_spd(info: InfoMatrix, who: str) -> None:
         raise InvalidMapError(f"{who}: information matrix is singular") from None
     if np.any(lu.U.diagonal() <= 0):
         raise InvalidMapError(f"{who}: information matrix is not positive definite")
+
+
+def default_end_pose(frame_id: int, pose_ids: npt.ArrayLike) -> int | None:
+    """Return the end pose of a pose-only map: the frame's successor if held, else the largest id."""
+    ids = np.asarray(pose_ids, dtype=np.int64)
+    if ids.size == 0:
+        return None
+    return frame_id + 1 if np.any(ids == frame_id + 1) else int(ids.max())
+
+
+def fuse_repeated(
+    name: str, dim: int, var_ids: npt.NDArray[np.int64], kinds: npt.NDArray[np.int8], values: FloatArray, info: FloatArray
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int8], FloatArray, FloatArray]:
+    """Fuse repeated variables of one file into one (two edges to the same pose, as in Intel).
+
+    Two observations ``z_1, z_2`` of one variable with joint information ``I`` are the linear
+    observation ``A v`` with ``A = [E; E]``; they are replaced by the equivalent single one,
+    ``I_f = A^T I A`` and ``z_f = I_f^-1 A^T I z``. The objective changes only by a constant
+    (zero when the repeats agree, as in the benchmark data).
+    """
+    keys = var_keys(var_ids, kinds)
+    uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # keep first-appearance order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    target = rank[inverse]  # fused variable index of each raw variable
+    sizes = np.where(kinds == POSE, pose_size(dim), dim)
+    raw_off = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    fused_kinds = kinds[first[order]]
+    fused_ids = var_ids[first[order]]
+    fused_sizes = np.where(fused_kinds == POSE, pose_size(dim), dim)
+    fused_off = np.concatenate([[0], np.cumsum(fused_sizes)[:-1]])
+    n_raw, n_f = int(sizes.sum()), int(fused_sizes.sum())
+    sel = np.zeros((n_raw, n_f))
+    z = values.copy()
+    for v in range(var_ids.size):
+        for j in range(int(sizes[v])):
+            sel[raw_off[v] + j, fused_off[target[v]] + j] = 1.0
+        first_v = int(first[inverse[v]])
+        if first_v != v and kinds[v] == POSE:
+            a = slice(raw_off[v] + dim, raw_off[v] + sizes[v])
+            ref = z[raw_off[first_v] + dim : raw_off[first_v] + sizes[v]]
+            z[a] = ref + wrap_angle(z[a] - ref)
+    info_f = sel.T @ info @ sel
+    z_f = np.linalg.solve(info_f, sel.T @ (info @ z))
+    logger.warning("%s: fused %d repeated variable(s) into one each", name, var_ids.size - uniq.size)
+    return fused_ids, fused_kinds, z_f, 0.5 * (info_f + info_f.T)
+
+

@@ -1,0 +1,203 @@
+"""Benchmark: every dataset with every joining method; figures to ``OUT/benchmark.{md,json}``.
+
+For each dataset: read it (not timed), run D&C, then Gauss-Newton from the D&C result (the
+"Nonlinear LS" reference), then every method, recording time, per-submap latency, peak RSS, χ²
+and RMSE against the Nonlinear LS result. Online D&C latency against submap index is plotted to
+``OUT/latency_<dataset>.png`` and summarised per tenth of the run in the markdown.
+
+Exact sequential joining costs O(n^2) memory and time per submap (n: state size); it is skipped
+above :data:`SEQUENTIAL_MAX_STATE` with the reason written in the table.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from linear_slam_ros.datasets import Dataset, read_dataset
+from linear_slam_ros.frames import change_frame
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.metrics import latency_summary, rmse
+from linear_slam_ros.nonlinear import refine
+from linear_slam_ros.objective import chi2
+from linear_slam_ros.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+
+logger = logging.getLogger(__name__)
+
+SEQUENTIAL_MAX_STATE = 4000
+"""Largest state (scalars) the exact sequential benchmark runs on (covariance n^2 doubles)."""
+
+# Reference C++ program (CHOLMOD) on this machine kind, CPU seconds (datasets README).
+REFERENCE_SECONDS = {
+    "VicPark_200_local_maps": {"dc": 0.27, "sequential": 11.8},
+    "DLR_200_local_maps": {"dc": 0.09, "sequential": 13.0},
+    "8240_data_50_local_maps": {"dc": 0.05, "sequential": 0.38},
+    "VicPark_6898_local_maps": {"dc": 2.41, "sequential": "> 900"},
+    "Simu_3D_870_Loop": {"dc": 1.13, "sequential": "> 900"},
+    "Intel": {"dc": 0.15, "sequential": "> 900"},
+    "manhattanOlson3500": {"dc": 0.77},
+    "sphere2500": {"dc": 4.92},
+}
+# Paper's Linear SLAM and Nonlinear LS chi2 (Tables 2 and 4) and the reference's sequential chi2.
+PAPER_CHI2 = {
+    "VicPark_200_local_maps": {"dc": 3645, "nls": 3643, "sequential": 3656.9},
+    "DLR_200_local_maps": {"dc": 12577, "nls": 11164, "sequential": 12583.2},
+    "8240_data_50_local_maps": {"dc": 528.7, "sequential": 1399.6},
+    "VicPark_6898_local_maps": {"dc": 9021, "nls": 9013},
+    "Intel": {"dc": 546.51, "nls": 546.46},
+    "manhattanOlson3500": {"dc": 214.12, "nls": 137.91},
+    "sphere2500": {"dc": 1363.8, "nls": 1154.5},
+}
+
+
+def _rmse_or_none(a: LocalMap, b: LocalMap, kind: int) -> float | None:
+    try:
+        return rmse(a, b, kind)
+    except Exception:  # no variable of that kind
+        return None
+
+
+def benchmark_dataset(dataset: Dataset, methods: Sequence[str], out_dir: Path) -> dict[str, Any]:
+    """Run every method on one dataset and return its figures."""
+    origin = dataset.maps[0].frame_id
+    entry: dict[str, Any] = {"dataset": dataset.name, "kind": dataset.kind.value, "n_submaps": len(dataset.maps)}
+    dc_run = run_join(dataset.maps, JoinMethod.DC)
+    t0 = time.perf_counter()
+    nls = refine(dc_run.result, dataset.maps)
+    entry["nls"] = {
+        "chi2": nls.chi2,
+        "iterations": nls.iterations,
+        "seconds_from_dc": time.perf_counter() - t0,
+        "state_dim": nls.map.state_dim,
+    }
+    runs: dict[str, Any] = {}
+    for method in methods:
+        if method == JoinMethod.SEQUENTIAL.value and dc_run.result.state_dim > SEQUENTIAL_MAX_STATE:
+            runs[method] = {"skipped": f"state of {dc_run.result.state_dim} scalars: O(n^2) per submap, not run"}
+            continue
+        gc.collect()
+        run = dc_run if method == JoinMethod.DC.value else run_join(dataset.maps, method)
+        in_origin = run.result if run.result.frame_id == origin else change_frame(run.result, origin)
+        runs[method] = {
+            "seconds": run.seconds,
+            **latency_summary(run.step_seconds),
+            "peak_rss_mb": peak_rss_mb(),
+            "chi2": chi2(in_origin, dataset.maps),
+            "state_dim": run.result.state_dim,
+            "info_nnz": run.result.info_nnz(),
+            "rmse_pose_vs_nls": _rmse_or_none(in_origin, nls.map, POSE),
+            "rmse_feature_vs_nls": _rmse_or_none(in_origin, nls.map, FEATURE),
+        }
+        if method == JoinMethod.ONLINE_DC.value:
+            runs[method]["latency_by_tenth"] = _latency_by_tenth(run)
+            _plot_latency(run, dataset.name, out_dir / f"latency_{dataset.name}.png")
+    entry["methods"] = runs
+    entry["reference_seconds"] = REFERENCE_SECONDS.get(dataset.name, {})
+    entry["paper_chi2"] = PAPER_CHI2.get(dataset.name, {})
+    return entry
+
+
+def _latency_by_tenth(run: JoinRun) -> list[dict[str, float]]:
+    steps = np.asarray(run.step_seconds[:-1] if len(run.step_seconds) > 1 else run.step_seconds) * 1e3
+    rows = []
+    for part in np.array_split(np.arange(steps.size), 10):
+        if part.size:
+            rows.append(
+                {
+                    "first": int(part[0]) + 1,
+                    "last": int(part[-1]) + 1,
+                    "p50_ms": float(np.percentile(steps[part], 50)),
+                    "max_ms": float(steps[part].max()),
+                }
+            )
+    return rows
+
+
+def _plot_latency(run: JoinRun, name: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ms = np.asarray(run.step_seconds) * 1e3
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.semilogy(np.arange(1, ms.size + 1), ms, ".", ms=2)
+    ax.set_xlabel("submap index")
+    ax.set_ylabel("join latency (ms)")
+    ax.set_title(f"online divide-and-conquer latency, {name} (last point includes the final merge)")
+    ax.axhline(20, color="r", lw=0.8, ls="--", label="20 ms")
+    ax.legend(loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _fmt(v: Any, digits: int = 3) -> str:
+    if v is None:
+        return "–"
+    if isinstance(v, float):
+        return f"{v:.{digits}f}" if abs(v) < 1e5 else f"{v:.4g}"
+    return str(v)
+
+
+def to_markdown(entries: list[dict[str, Any]]) -> str:
+    """Return the markdown tables of a benchmark."""
+    lines = [
+        "| dataset | method | seconds | reference s | p50 ms | p99 ms | max ms | peak RSS MB | χ² | paper χ² | RMSE pose vs NLS | RMSE feature vs NLS |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        for method, r in e["methods"].items():
+            ref = e["reference_seconds"].get(method, "")
+            paper = e["paper_chi2"].get(method, "")
+            if "skipped" in r:
+                lines.append(f"| {e['dataset']} | {method} | skipped: {r['skipped']} | {ref} | | | | | | {paper} | | |")
+                continue
+            lines.append(
+                f"| {e['dataset']} | {method} | {_fmt(r['seconds'])} | {ref} | {_fmt(r['per_submap_ms_p50'])} | "
+                f"{_fmt(r['per_submap_ms_p99'])} | {_fmt(r['per_submap_ms_max'])} | {_fmt(r['peak_rss_mb'], 0)} | "
+                f"{_fmt(r['chi2'], 2)} | {paper} | {_fmt(r['rmse_pose_vs_nls'], 6)} | {_fmt(r['rmse_feature_vs_nls'], 6)} |"
+            )
+        nls = e["nls"]
+        lines.append(
+            f"| {e['dataset']} | Nonlinear LS (from D&C) | {_fmt(nls['seconds_from_dc'])} | | | | | | {_fmt(nls['chi2'], 2)} | "
+            f"{e['paper_chi2'].get('nls', '')} | | |"
+        )
+    lines += ["", "Per-submap latency of online D&C by tenth of the run (p50 / max, ms):", ""]
+    for e in entries:
+        tenths = e["methods"].get("online-dc", {}).get("latency_by_tenth")
+        if tenths:
+            cells = ", ".join(f"{t['first']}–{t['last']}: {t['p50_ms']:.2f} / {t['max_ms']:.1f}" for t in tenths)
+            lines.append(f"- {e['dataset']}: {cells}")
+    return "\n".join(lines) + "\n"
+
+
+def run_benchmark(
+    datasets_dir: Path, out_dir: Path, methods: Sequence[str] | None = None, only: Sequence[str] | None = None
+) -> list[dict[str, Any]]:
+    """Benchmark every ``*.tar.xz`` in ``datasets_dir``; write ``benchmark.md`` and ``benchmark.json``."""
+    methods = list(methods or [m.value for m in JoinMethod])
+    out_dir.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for archive in sorted(datasets_dir.glob("*.tar.xz")):
+        name = archive.name.removesuffix(".tar.xz")
+        if only and name not in only:
+            continue
+        t0 = time.perf_counter()
+        dataset = read_dataset(archive)
+        read_s = time.perf_counter() - t0
+        logger.info("benchmark: %s (%d maps, read in %.2f s)", name, len(dataset.maps), read_s)
+        entry = benchmark_dataset(dataset, methods, out_dir)
+        entry["read_seconds"] = read_s
+        entries.append(entry)
+        (out_dir / "benchmark.json").write_text(json.dumps(entries, indent=2) + "\n")
+        (out_dir / "benchmark.md").write_text(to_markdown(entries))
+        del dataset
+    logger.info("benchmark written to %s", out_dir / "benchmark.md")
+    return entries

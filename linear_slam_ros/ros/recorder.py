@@ -1,0 +1,74 @@
+"""Record topics (``global_map`` by default) into a rosbag2 MCAP bag.
+
+``bag_recorder --out BAG [--topics global_map] [--count N] [--duration S]``: subscribes
+reliable and transient local (so a latched map published before start is received too) and
+writes every message as received; stops after N messages, S seconds, or Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
+
+from linear_slam_ros.ros.bagio import write_messages
+
+
+class Recorder:
+    """Collects raw messages of some topics from a node."""
+
+    def __init__(self, node: Node, topics: Sequence[str]) -> None:
+        self.records: list[tuple[str, int, bytes]] = []
+        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        for topic in topics:
+            node.create_subscription(Float64MultiArray, topic, lambda raw, t=topic: self._on(t, raw), qos, raw=True)
+        self._clock = node.get_clock()
+
+    def _on(self, topic: str, raw: bytes) -> None:
+        self.records.append((topic, self._clock.now().nanoseconds, bytes(raw)))
+
+    def save(self, path: Path, latched: set[str]) -> int:
+        """Write what was received to a bag; return the number of messages."""
+        return write_messages(path, self.records, latched=latched, overwrite=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point."""
+    args_ros = rclpy.utilities.remove_ros_args(list(sys.argv if argv is None else argv))
+    ap = argparse.ArgumentParser(prog="bag_recorder", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--topics", nargs="+", default=["global_map"])
+    ap.add_argument("--count", type=int, default=0, help="stop after this many messages (0: no limit)")
+    ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: no limit)")
+    args = ap.parse_args(args_ros[1:])
+    rclpy.init(args=argv)
+    node = rclpy.create_node("bag_recorder")
+    recorder = Recorder(node, args.topics)
+    start = time.monotonic()
+    try:
+        while rclpy.ok():
+            rclpy.spin_once(node, timeout_sec=0.1)
+            if args.count and len(recorder.records) >= args.count:
+                break
+            if args.duration and time.monotonic() - start >= args.duration:
+                break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        n = recorder.save(args.out, latched={"global_map"})
+        node.get_logger().info(f"recorded {n} messages to {args.out}")
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

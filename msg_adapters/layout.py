@@ -1,0 +1,267 @@
+"""The documented array layouts of linear_slam_ros messages, independent of any ROS library.
+
+Every message is a ``std_msgs/Float64MultiArray`` whose ``layout.dim`` lists named segments
+of ``data``, in order: ``dim[k].label`` is the segment name, ``dim[k].size`` its number of
+float64 values and ``dim[k].stride`` equals ``size``. ``layout.data_offset`` is 0. Decoders
+find segments by label (unknown labels are skipped, so segments can be added without breaking
+old readers) and check every size. Integers are stored as float64 (exact below 2**53).
+
+Local map and global map (``MAP_KIND_*``)::
+
+    header      [version=1, dim, map_kind, seq, stamp_sec, stamp_nanosec, frame_pose_id,
+                 end_pose_id (-1: none), n_submaps]
+    var_ids     m variable ids
+    var_kinds   m kinds: 0 pose, 1 point feature
+    state       n values: each pose x y phi (2D) / x y z alpha beta gamma (3D), each feature
+                x y [z]; metres, radians; in the frame of pose frame_pose_id
+    info_rows   k row indices   \\  the information matrix's upper triangle (i <= j) as sparse
+    info_cols   k column indices >  triplets: exact, symmetric by construction, and sized by
+    info_vals   k values        /   its non-zeros (a joined map's is sparse; a dense triangle
+                                    of VicPark6898's 21292-scalar map would be 1.8 GB)
+    stats       (global map only) [n_joined, n_rejected, last_join_ms, join_ms_p50,
+                 join_ms_p99, join_ms_max, join_seconds_total]
+
+Pose-graph chunk (the relative-pose constraints of one submap)::
+
+    header      [version=1, dim, MAP_KIND_POSE_GRAPH, seq, stamp_sec, stamp_nanosec, n_edges]
+    edge_from   k pose ids
+    edge_to     k pose ids
+    measurement k * p values: pose ``to`` seen from pose ``from`` (p = 3 in 2D, 6 in 3D)
+    information k * p * p values: each edge's p x p information, row-major
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+
+from linear_slam_ros.errors import InvalidMapError, MessageError
+from linear_slam_ros.geometry import pose_size
+from linear_slam_ros.local_map import LocalMap
+from linear_slam_ros.pose_graph import PoseGraphChunk
+
+FloatArray = npt.NDArray[np.float64]
+
+FORMAT_VERSION = 1
+MAP_KIND_LOCAL = 0
+"""A front-end's local map (pose-feature, pose-only or feature-only by its variables)."""
+MAP_KIND_GLOBAL = 1
+"""The joined global map published by the node."""
+MAP_KIND_POSE_GRAPH = 2
+"""A pose-graph chunk."""
+
+MAP_SEGMENTS = ("header", "var_ids", "var_kinds", "state", "info_rows", "info_cols", "info_vals")
+CHUNK_SEGMENTS = ("header", "edge_from", "edge_to", "measurement", "information")
+STATS_FIELDS = ("n_joined", "n_rejected", "last_join_ms", "join_ms_p50", "join_ms_p99", "join_ms_max", "join_seconds_total")
+_MAP_HEADER = 9
+_CHUNK_HEADER = 7
+_MAX_EXACT = 2.0**53
+
+
+@dataclass(frozen=True)
+class Encoded:
+    """A message's content: segment labels, sizes and the concatenated data."""
+
+    labels: tuple[str, ...]
+    sizes: tuple[int, ...]
+    data: FloatArray
+
+
+@dataclass(frozen=True)
+class Stamp:
+    """A ROS time: whole seconds and nanoseconds."""
+
+    sec: int = 0
+    nanosec: int = 0
+
+
+@dataclass(frozen=True)
+class MapMessage:
+    """A decoded local or global map message."""
+
+    local_map: LocalMap
+    seq: int
+    stamp: Stamp
+    map_kind: int
+    n_submaps: int
+    stats: dict[str, float] | None = None
+
+
+@dataclass(frozen=True)
+class ChunkMessage:
+    """A decoded pose-graph chunk message."""
+
+    chunk: PoseGraphChunk
+    stamp: Stamp
+
+
+def _encode(segments: Sequence[tuple[str, npt.ArrayLike]]) -> Encoded:
+    arrays = [np.ascontiguousarray(np.asarray(v, dtype=np.float64).ravel()) for _, v in segments]
+    return Encoded(tuple(k for k, _ in segments), tuple(int(a.size) for a in arrays), np.concatenate(arrays))
+
+
+def encode_map(
+    local_map: LocalMap,
+    seq: int,
+    stamp: Stamp = Stamp(),
+    map_kind: int = MAP_KIND_LOCAL,
+    n_submaps: int = 1,
+    stats: dict[str, float] | None = None,
+) -> Encoded:
+    """Encode a map into the documented layout (information as upper-triangle triplets)."""
+    upper = sp.triu(sp.coo_matrix(local_map.info), format="coo")
+    header = [
+        FORMAT_VERSION, local_map.dim, map_kind, seq, stamp.sec, stamp.nanosec, local_map.frame_id,
+        -1 if local_map.end_id is None else local_map.end_id, n_submaps,
+    ]
+    segments: list[tuple[str, npt.ArrayLike]] = [
+        ("header", header),
+        ("var_ids", local_map.ids),
+        ("var_kinds", local_map.kinds),
+        ("state", local_map.x),
+        ("info_rows", upper.row),
+        ("info_cols", upper.col),
+        ("info_vals", upper.data),
+    ]
+    if stats is not None:
+        segments.append(("stats", [float(stats.get(k, 0.0)) for k in STATS_FIELDS]))
+    return _encode(segments)
+
+
+def _segments(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, offset: int, required: Sequence[str], what: str) -> dict[str, FloatArray]:
+    data = np.asarray(data, dtype=np.float64)
+    if offset != 0:
+        raise MessageError(f"{what}: layout.data_offset must be 0, got {offset}")
+    if len(labels) != len(sizes):
+        raise MessageError(f"{what}: {len(labels)} labels for {len(sizes)} sizes")
+    total = int(sum(int(s) for s in sizes))
+    if total != data.size:
+        raise MessageError(f"{what}: layout sizes add up to {total} values but data has {data.size}")
+    out: dict[str, FloatArray] = {}
+    pos = 0
+    for label, size in zip(labels, sizes):
+        if label in out:
+            raise MessageError(f"{what}: segment {label!r} appears twice")
+        out[label] = data[pos : pos + int(size)]
+        pos += int(size)
+    missing = [k for k in required if k not in out]
+    if missing:
+        raise MessageError(f"{what}: missing segment(s) {missing}; labels were {list(labels)}")
+    if not np.all(np.isfinite(data)):
+        bad = [k for k, v in out.items() if not np.all(np.isfinite(v))]
+        raise MessageError(f"{what}: non-finite values in segment(s) {bad}")
+    return out
+
+
+def _ints(values: FloatArray, name: str, what: str) -> npt.NDArray[np.int64]:
+    if np.any(values != np.round(values)) or np.any(np.abs(values) >= _MAX_EXACT):
+        raise MessageError(f"{what}: segment {name!r} must hold integers")
+    return values.astype(np.int64)
+
+
+def _header(seg: dict[str, FloatArray], size: int, what: str) -> npt.NDArray[np.int64]:
+    header = seg["header"]
+    if header.size < size:
+        raise MessageError(f"{what}: header has {header.size} values, format 1 needs {size}")
+    h = _ints(header[:size], "header", what)
+    if h[0] != FORMAT_VERSION:
+        raise MessageError(f"{what}: unsupported format version {h[0]} (this node reads {FORMAT_VERSION})")
+    if h[1] not in (2, 3):
+        raise MessageError(f"{what}: dimension must be 2 or 3, got {h[1]}")
+    if h[4] < 0 or not 0 <= h[5] < 1_000_000_000:
+        raise MessageError(f"{what}: invalid stamp {h[4]} s {h[5]} ns")
+    return h
+
+
+def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> MapMessage:
+    """Decode a local or global map message; validate the map.
+
+    Raises:
+        MessageError: the layout does not follow the contract (names the segment).
+        InvalidMapError: the map itself is invalid (names the map and the fault).
+    """
+    what = "map message"
+    seg = _segments(labels, sizes, data, data_offset, MAP_SEGMENTS, what)
+    h = _header(seg, _MAP_HEADER, what)
+    dim, map_kind, seq = int(h[1]), int(h[2]), int(h[3])
+    if map_kind not in (MAP_KIND_LOCAL, MAP_KIND_GLOBAL):
+        raise MessageError(f"{what}: map_kind must be {MAP_KIND_LOCAL} (local) or {MAP_KIND_GLOBAL} (global), got {map_kind}")
+    what = f"map message seq {seq}"
+    ids = _ints(seg["var_ids"], "var_ids", what)
+    kinds = _ints(seg["var_kinds"], "var_kinds", what)
+    if ids.size != kinds.size:
+        raise MessageError(f"{what}: {ids.size} var_ids but {kinds.size} var_kinds")
+    n = seg["state"].size
+    rows = _ints(seg["info_rows"], "info_rows", what)
+    cols = _ints(seg["info_cols"], "info_cols", what)
+    vals = seg["info_vals"]
+    if not rows.size == cols.size == vals.size:
+        raise MessageError(f"{what}: info_rows, info_cols, info_vals sizes differ ({rows.size}, {cols.size}, {vals.size})")
+    if rows.size and (rows.min() < 0 or cols.min() < 0 or rows.max() >= n or cols.max() >= n):
+        raise MessageError(f"{what}: information index out of range for a state of {n} values")
+    if np.any(rows > cols):
+        raise MessageError(f"{what}: information triplets must be in the upper triangle (row <= col)")
+    if np.unique(rows * max(n, 1) + cols).size != rows.size:
+        raise MessageError(f"{what}: repeated information entry")
+    upper = sp.coo_matrix((vals, (rows, cols)), shape=(n, n))
+    info = (upper + sp.triu(upper, k=1).T).tocsr()
+    from linear_slam_ros.solvers import DENSE_MAX
+
+    stored = info.toarray() if n <= DENSE_MAX else info
+    end = None if h[7] < 0 else int(h[7])
+    name = f"{'local' if map_kind == MAP_KIND_LOCAL else 'global'} map seq {seq}"
+    if np.any((kinds != 0) & (kinds != 1)):
+        raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {kinds[(kinds != 0) & (kinds != 1)][0]}")
+    local_map = LocalMap(dim, int(h[6]), end, ids, kinds.astype(np.int8), seg["state"].copy(), stored, name=name)
+    stats = None
+    if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
+        stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"])}
+    return MapMessage(local_map, seq, Stamp(int(h[4]), int(h[5])), map_kind, int(h[8]), stats)
+
+
+def encode_chunk(chunk: PoseGraphChunk, stamp: Stamp = Stamp()) -> Encoded:
+    """Encode a pose-graph chunk into the documented layout."""
+    header = [FORMAT_VERSION, chunk.dim, MAP_KIND_POSE_GRAPH, chunk.seq, stamp.sec, stamp.nanosec, chunk.n_edges]
+    return _encode(
+        [
+            ("header", header),
+            ("edge_from", chunk.from_ids),
+            ("edge_to", chunk.to_ids),
+            ("measurement", chunk.measurements),
+            ("information", chunk.information),
+        ]
+    )
+
+
+def decode_chunk(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> ChunkMessage:
+    """Decode a pose-graph chunk message.
+
+    Raises:
+        MessageError: the layout does not follow the contract.
+        GraphError: the edges are invalid (see :class:`PoseGraphChunk`).
+    """
+    what = "pose_graph message"
+    seg = _segments(labels, sizes, data, data_offset, CHUNK_SEGMENTS, what)
+    h = _header(seg, _CHUNK_HEADER, what)
+    if h[2] != MAP_KIND_POSE_GRAPH:
+        raise MessageError(f"{what}: map_kind must be {MAP_KIND_POSE_GRAPH} for a pose-graph chunk, got {h[2]}")
+    dim, seq, k = int(h[1]), int(h[3]), int(h[6])
+    what = f"pose_graph message seq {seq}"
+    p = pose_size(dim)
+    expected = {"edge_from": k, "edge_to": k, "measurement": k * p, "information": k * p * p}
+    for name, size in expected.items():
+        if seg[name].size != size:
+            raise MessageError(f"{what}: segment {name!r} has {seg[name].size} values, {k} edges need {size}")
+    chunk = PoseGraphChunk(
+        dim,
+        seq,
+        _ints(seg["edge_from"], "edge_from", what),
+        _ints(seg["edge_to"], "edge_to", what),
+        seg["measurement"].reshape(k, p).copy(),
+        seg["information"].reshape(k, p, p).copy(),
+    )
+    return ChunkMessage(chunk, Stamp(int(h[4]), int(h[5])))

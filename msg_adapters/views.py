@@ -1,0 +1,117 @@
+"""Core maps -> the standard messages a person looks at (nav_msgs/Path, MarkerArray, PoseStamped).
+
+Orientation convention: a dataset pose's ``R`` maps world directions into the robot frame, so
+the robot's orientation in the world (what ROS poses carry) is ``R^T``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
+from nav_msgs.msg import Path
+from scipy.spatial.transform import Rotation
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from linear_slam_ros.geometry import rotation
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
+
+FloatArray = npt.NDArray[np.float64]
+
+ELLIPSE_SIGMA = 2.0
+"""Covariance ellipses are drawn at this many standard deviations."""
+
+
+def pose_to_msg(dim: int, pose: FloatArray) -> Pose:
+    """Return a ``geometry_msgs/Pose`` of a dataset-convention pose."""
+    msg = Pose()
+    msg.position = Point(x=float(pose[0]), y=float(pose[1]), z=float(pose[2]) if dim == 3 else 0.0)
+    body_to_world = rotation(dim, np.asarray(pose[dim:], dtype=np.float64)).T
+    if dim == 2:
+        full = np.eye(3)
+        full[:2, :2] = body_to_world
+        body_to_world = full
+    qx, qy, qz, qw = Rotation.from_matrix(body_to_world).as_quat()
+    msg.orientation = Quaternion(x=float(qx), y=float(qy), z=float(qz), w=float(qw))
+    return msg
+
+
+def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
+    """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``."""
+    header = Header(stamp=stamp, frame_id=frame_id)
+    poses = [(global_map.frame_id, np.zeros(global_map.dim + (1 if global_map.dim == 2 else 3)))]
+    poses += [(int(global_map.ids[i]), global_map.x[global_map.scalar_slice(i)]) for i in np.flatnonzero(global_map.kinds == POSE)]
+    poses.sort(key=lambda item: item[0])
+    msg = Path(header=header)
+    msg.poses = [PoseStamped(header=header, pose=pose_to_msg(global_map.dim, p)) for _, p in poses]
+    return msg
+
+
+def current_pose_msg(global_map: LocalMap, end_id: int, frame_id: str, stamp: Time) -> PoseStamped:
+    """Return pose ``end_id`` of a map (in the first pose's frame) as ``geometry_msgs/PoseStamped``."""
+    return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=pose_to_msg(global_map.dim, global_map.pose(end_id)))
+
+
+def feature_markers(
+    global_map: LocalMap, frame_id: str, stamp: Time, covariances: dict[int, FloatArray] | None = None
+) -> MarkerArray:
+    """Return the features as a point list plus, where given, one 2-sigma ellipse (ellipsoid) each.
+
+    Args:
+        global_map: the map, in the frame of its first pose.
+        frame_id: ``map_frame``.
+        stamp: header stamp.
+        covariances: ``{feature id: (d, d) marginal covariance}``.
+    """
+    header = Header(stamp=stamp, frame_id=frame_id)
+    feats = np.flatnonzero(global_map.kinds == FEATURE)
+    d = global_map.dim
+    points = Marker(header=header, ns="features", id=0, type=Marker.SPHERE_LIST, action=Marker.ADD)
+    points.pose.orientation.w = 1.0
+    points.scale.x = points.scale.y = points.scale.z = 0.3
+    points.color = ColorRGBA(r=0.1, g=0.3, b=0.9, a=1.0)
+    for i in feats.tolist():
+        x = global_map.x[global_map.scalar_slice(i)]
+        points.points.append(Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0))
+    markers = [Marker(header=header, ns="features", action=Marker.DELETEALL), points]
+    for i in feats.tolist() if covariances else []:
+        fid = int(global_map.ids[i])
+        cov = covariances.get(fid) if covariances else None
+        if cov is None:
+            continue
+        values, vectors = np.linalg.eigh(0.5 * (cov + cov.T))
+        values = np.clip(values, 0.0, None)
+        if np.linalg.det(vectors) < 0:
+            vectors[:, 0] = -vectors[:, 0]
+        m = Marker(header=header, ns="covariance", id=fid, action=Marker.ADD)
+        x = global_map.x[global_map.scalar_slice(i)]
+        m.pose.position = Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0)
+        axes = 2.0 * ELLIPSE_SIGMA * np.sqrt(values)  # full axis lengths
+        if d == 2:
+            m.type = Marker.CYLINDER
+            full = np.eye(3)
+            full[:2, :2] = vectors
+            vectors = full
+            m.scale.x, m.scale.y, m.scale.z = float(axes[0]), float(axes[1]), 0.02
+        else:
+            m.type = Marker.SPHERE
+            m.scale.x, m.scale.y, m.scale.z = (float(a) for a in axes)
+        qx, qy, qz, qw = Rotation.from_matrix(vectors).as_quat()
+        m.pose.orientation = Quaternion(x=float(qx), y=float(qy), z=float(qz), w=float(qw))
+        m.color = ColorRGBA(r=0.9, g=0.4, b=0.1, a=0.35)
+        markers.append(m)
+    return MarkerArray(markers=markers)
+
+
+def feature_covariances(global_map: LocalMap, max_state: int) -> dict[int, FloatArray] | None:
+    """Return each feature's marginal covariance, or ``None`` above ``max_state`` scalars."""
+    if global_map.state_dim > max_state or not np.any(global_map.kinds == FEATURE):
+        return None
+    cov = np.linalg.inv(global_map.info_dense())
+    out = {}
+    for i in np.flatnonzero(global_map.kinds == FEATURE).tolist():
+        sl = global_map.scalar_slice(i)
+        out[int(global_map.ids[i])] = cov[sl, sl]
+    return out

@@ -1,0 +1,34 @@
+"""ament_python set-up of linear_slam_ros: console scripts land in lib/linear_slam_ros (setup.cfg)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "linear_slam_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*", "msg_adapters", "msg_adapters.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="linear_slam_ros developers",
+    maintainer_email="dev@linear-slam-ros.invalid",
+    description="Online submap joining in closed form (Linear SLAM) for ROS 2 Jazzy",
+    license="BSD-3-Clause",
+    extras_require={"test": ["pytest"]},
+    entry_points={
+        "console_scripts": [
+            "joiner = linear_slam_ros.ros.node:main",
+            "bag_from_dataset = linear_slam_ros.ros.bag_from_dataset:main",
+            "bag_player = linear_slam_ros.ros.player:main",
+            "bag_recorder = linear_slam_ros.ros.recorder:main",
+            "demo = linear_slam_ros.ros.demo:main",
+        ],
+    },
+)

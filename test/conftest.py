@@ -2,23 +2,10 @@
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
-DATASETS = Path(os.environ.get("LINEAR_SLAM_DATASETS", REPO.parent / "shared" / "datasets"))
-CACHE = REPO / ".cache" / "datasets"
-
-
-def dataset_archive(name: str) -> Path:
-    """Return the archive of a benchmark dataset, skipping the test when it is absent."""
-    path = DATASETS / f"{name}.tar.xz"
-    if not path.exists():
-        pytest.fail(f"benchmark dataset {path} is missing: ../shared must sit beside the repository")
-    return path
+from support import CACHE, dataset_archive
 
 
 @pytest.fixture

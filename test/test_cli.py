@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from conftest import CACHE, dataset_archive
+from support import CACHE, dataset_archive
 from linear_slam_ros.cli import main
 from linear_slam_ros.datasets import read_rows
 

@@ -37,6 +37,8 @@ from msg_adapters.ros import parts, to_msg
 from msg_adapters.views import current_pose_msg, feature_covariances, feature_markers, path_msg
 
 NODE_NAME = "joiner"
+PUBLISH_DUTY = 0.25
+"""Largest fraction of wall time spent computing outputs (the rest is left to joining)."""
 
 # name: (default, description, read_only, range)
 PARAMETERS: dict[str, tuple[Any, str, bool, tuple[float, float] | None]] = {
@@ -48,7 +50,7 @@ PARAMETERS: dict[str, tuple[Any, str, bool, tuple[float, float] | None]] = {
     "map_frame": ("map", "frame_id of the viewing topics (the first pose's frame)", False, None),
     "queue_depth": (0, "subscription history depth; 0 keeps all (reliable, no submap dropped)", True, (0, 1_000_000)),
     "reorder_window": (100, "early submaps held while waiting for a missing sequence number", False, (1, 1_000_000)),
-    "ellipse_max_state": (4000, "largest global state (scalars) for which feature covariance ellipses are drawn",
+    "ellipse_max_state": (1500, "largest global state (scalars) for which feature covariance ellipses are drawn",
                           False, (0, 1_000_000)),
     "summary_period": (5.0, "seconds between info-level summary lines and /diagnostics", False, (0.1, 3600.0)),
     "save_directory": ("saved_map", "folder where ~/save_map writes poses.txt, features.txt and a bag", False, None),
@@ -89,7 +91,7 @@ class JoinerNode(Node):
         self._version = 0  # bumped on every state change; the publisher compares it
         self._published_version = -1
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
-        self._last_summary = time.monotonic()
+        self._next_publish = 0.0
 
         depth = int(self.get_parameter("queue_depth").value)
         inbound = QoSProfile(
@@ -202,6 +204,9 @@ class JoinerNode(Node):
         return Stamp(int(now.sec), int(now.nanosec))
 
     def _on_publish_timer(self) -> None:
+        now = time.monotonic()
+        if now < self._next_publish:
+            return
         with self._lock:
             state, version, stats = self.joiner.state, self._version, self.joiner.stats()
         if version == self._published_version or state.n_joined == 0:
@@ -211,6 +216,9 @@ class JoinerNode(Node):
         except LinearSlamError as exc:  # pragma: no cover - outputs of a valid state
             self.get_logger().error(f"could not publish the global map: {exc}")
         self._published_version = version
+        # Outputs of a large map cost CPU the joining thread needs: keep publishing under
+        # PUBLISH_DUTY of the time, whatever publish_rate asks for.
+        self._next_publish = now + (time.monotonic() - now) / PUBLISH_DUTY
 
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
         output_frame = str(self.get_parameter("output_frame").value)

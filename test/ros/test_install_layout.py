@@ -1,0 +1,40 @@
+"""The installed layout is what `ros2 run linear_slam_ros joiner` resolves, and it starts the node."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import rclpy
+
+from ros_support import REPO, sourced
+
+
+def test_ament_index_finds_the_package_and_its_executable(node, start_joiner):
+    out = subprocess.run(
+        sourced(f"{sys.executable} -c \"from ament_index_python.packages import get_package_prefix as p, "
+                "get_package_share_directory as s; print(p('linear_slam_ros')); print(s('linear_slam_ros'))\""),
+        capture_output=True, text=True, env=dict(os.environ), check=True,
+    ).stdout.split()
+    prefix, share = Path(out[0]), Path(out[1])
+    exe = prefix / "lib" / "linear_slam_ros" / "joiner"
+    assert exe.is_file() and os.access(exe, os.X_OK)
+    assert (share / "package.xml").is_file() and (share / "config" / "joiner.yaml").is_file()
+    for tool in ("bag_from_dataset", "bag_player", "bag_recorder", "demo"):
+        assert os.access(prefix / "lib" / "linear_slam_ros" / tool, os.X_OK)
+    assert prefix.resolve().is_relative_to((REPO / "install").resolve())
+
+    joiner = start_joiner()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.1)
+        if ("joiner", f"/{joiner.namespace}") in node.get_node_names_and_namespaces():
+            break
+    else:
+        raise AssertionError(f"node joiner did not appear: {node.get_node_names_and_namespaces()}")
+    code, output = joiner.stop()
+    assert code == 0, output  # Ctrl-C is a clean exit
+    assert "joiner ready: mode=sequential" in output

@@ -1,0 +1,147 @@
+"""End to end: a dataset's bag replayed through the joiner process over DDS, checked against the core.
+
+Each run writes its figures (end-to-end time, per-submap latency in the node, offline time) to
+``out/e2e/<dataset>_<mode>.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
+
+from ros_support import LATCHED, REPO, wait_for_global_map
+from linear_slam_ros.datasets import read_dataset
+from linear_slam_ros.objective import chi2
+from linear_slam_ros.ros.bag_from_dataset import make_bag
+from linear_slam_ros.ros.bagio import read_messages
+from linear_slam_ros.ros.player import play
+from linear_slam_ros.runner import run_join
+from linear_slam_ros.synthetic import make_world, noisy_local_maps
+from msg_adapters import decode_map, encode_map
+from msg_adapters.ros import parts, to_msg
+
+DATASETS = REPO.parent / "shared" / "datasets"
+CASES = [
+    pytest.param("VicPark_200_local_maps", "sequential", id="VicPark200-sequential"),
+    pytest.param("Intel", "online-dc", id="Intel-online-dc"),
+    pytest.param("Simu_3D_870_Loop", "online-dc", id="Simu3D870-online-dc", marks=pytest.mark.slow),
+    pytest.param("sphere2500", "online-dc", id="sphere2500-online-dc", marks=pytest.mark.slow),
+]
+
+
+def _bag(name: str) -> Path:
+    bag = REPO / "bags" / name
+    if not (bag / "metadata.yaml").exists():
+        make_bag(DATASETS / f"{name}.tar.xz", bag, rate_hz=10.0)
+    return bag
+
+
+def _publish_all(node, topic, messages):
+    pub = node.create_publisher(Float64MultiArray, topic, LATCHED.__class__(depth=1, history=2, reliability=1, durability=2))
+    deadline = time.monotonic() + 30
+    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    for m in messages:
+        pub.publish(m)
+    pub.wait_for_all_acked(rclpy.duration.Duration(seconds=30))
+    return pub
+
+
+@pytest.mark.parametrize("name, mode", CASES)
+def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchmark):
+    maps = read_benchmark(name).maps
+    records = list(read_messages(_bag(name)))
+    assert len(records) == len(maps)
+    joiner = start_joiner(mode=mode, publish_rate=10.0)
+    t0 = time.monotonic()
+    publish_s = play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    final, t_final = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 600.0, joiner)
+    code, output = joiner.stop()
+    assert code == 0, output[-2000:]
+
+    # every submap received and joined, in order, none rejected
+    assert final.n_submaps == len(maps) and final.seq == len(maps)
+    assert final.stats["n_joined"] == len(maps) and final.stats["n_rejected"] == 0
+    offline = run_join(maps, mode)
+    np.testing.assert_array_equal(final.local_map.ids, offline.result.ids)
+    np.testing.assert_allclose(final.local_map.x, offline.result.x, rtol=0, atol=1e-9)
+    scale = np.abs(offline.result.info_dense()).max()
+    np.testing.assert_allclose(final.local_map.info_dense() / scale, offline.result.info_dense() / scale, rtol=0, atol=1e-9)
+    chi2_node, chi2_core = chi2(final.local_map, maps), chi2(offline.result, maps)
+    assert chi2_node == pytest.approx(chi2_core, rel=1e-9)
+
+    figures = {
+        "dataset": name, "mode": mode, "n_submaps": len(maps), "end_to_end_seconds": t_final - t0,
+        "publish_seconds": publish_s, "node_join_ms_p50": final.stats["join_ms_p50"],
+        "node_join_ms_p99": final.stats["join_ms_p99"], "node_join_ms_max": final.stats["join_ms_max"],
+        "node_join_seconds_total": final.stats["join_seconds_total"], "offline_seconds": offline.seconds,
+        "chi2": chi2_node,
+    }
+    out = REPO / "out" / "e2e"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}_{mode}.json").write_text(json.dumps(figures, indent=2) + "\n")
+
+
+def _synthetic(n_maps=8):
+    world = make_world(2, 4 * n_maps, 25, np.random.default_rng(21))
+    return noisy_local_maps(world, np.random.default_rng(22), steps_per_map=4)
+
+
+def test_late_subscriber_gets_the_latched_map(node, start_joiner):
+    maps = _synthetic()
+    joiner = start_joiner(publish_rate=20.0)
+    _publish_all(node, joiner.topic("local_map"), [to_msg(encode_map(m, i)) for i, m in enumerate(maps, start=1)])
+    first, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 60.0, joiner)
+    time.sleep(0.5)
+    late = rclpy.create_node("late_subscriber")
+    try:
+        got, _ = wait_for_global_map(late, joiner.topic("global_map"), lambda m: True, 30.0, joiner)
+    finally:
+        late.destroy_node()
+    assert got.n_submaps == len(maps) and got.local_map.x.tobytes() == first.local_map.x.tobytes()
+
+
+def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner):
+    maps = _synthetic()
+    good = [to_msg(encode_map(m, i)) for i, m in enumerate(maps, start=1)]
+    garbage = Float64MultiArray(data=[1.0, 2.0, 3.0])  # no layout
+    nan_map = to_msg(encode_map(maps[2].replace(x=np.full(maps[2].state_dim, np.nan)), 3))
+    wrong_frame = to_msg(encode_map(maps[6], 99))  # seq 99 is early: buffered, never joined
+    duplicate = good[1]
+    stream = good[:2] + [garbage, duplicate, nan_map] + good[2:] + [wrong_frame]
+    joiner = start_joiner(publish_rate=20.0, reorder_window=5)
+    _publish_all(node, joiner.topic("local_map"), stream)
+    final, _ = wait_for_global_map(
+        node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps) and m.stats["n_rejected"] >= 3, 60.0, joiner
+    )
+    offline = run_join(maps, "sequential").result
+    np.testing.assert_allclose(final.local_map.x, offline.x, atol=1e-9)
+    assert final.stats["n_rejected"] == 3  # garbage, duplicate, NaN map
+
+    # ~/save_map writes the reference format and a bag; ~/reset clears the map
+    for service, expect in (("save_map", "saved 8 submaps"), ("reset", "global map cleared")):
+        client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/{service}")
+        assert client.wait_for_service(timeout_sec=20)
+        future = client.call_async(Trigger.Request())
+        rclpy.spin_until_future_complete(node, future, timeout_sec=30)
+        assert future.result().success and expect in future.result().message
+    saved = REPO / "saved_map"
+    assert (saved / "poses.txt").exists() and (saved / "global_map_bag" / "metadata.yaml").exists()
+    back = [decode_map(*parts_of(r.raw)) for r in read_messages(saved / "global_map_bag")]
+    assert back[0].n_submaps == len(maps)
+    code, output = joiner.stop()
+    assert code == 0
+    assert "rejected" in output and "submap seq 2 arrived after seq 2 was handled" in output
+
+
+def parts_of(raw: bytes):
+    from msg_adapters.bags import bag_parts, deserialize
+
+    return bag_parts(deserialize(raw))

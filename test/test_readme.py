@@ -1,0 +1,59 @@
+"""The README's parameter table and front-end example agree with the code."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import yaml
+
+from linear_slam_ros.ros.node import PARAMETERS
+from msg_adapters import decode_map
+from msg_adapters.ros import parts
+
+README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "joiner.yaml"
+
+
+def _table() -> dict[str, tuple[str, str]]:
+    block = README.split("<!-- parameters-table")[1].split("<!-- end parameters-table -->")[0]
+    rows = {}
+    for line in block.splitlines():
+        m = re.match(r"\| `(\w+)` \| `([^`]*)` \| (yes|no) \|", line)
+        if m:
+            rows[m.group(1)] = (m.group(2), m.group(3))
+    return rows
+
+
+def test_parameter_table_matches_declarations():
+    table = _table()
+    assert set(table) == set(PARAMETERS)
+    for name, (default, _desc, read_only, _range) in PARAMETERS.items():
+        assert table[name] == (str(default), "yes" if read_only else "no"), name
+
+
+def test_config_file_sets_declared_parameters_to_their_defaults():
+    params = yaml.safe_load(CONFIG.read_text())["/**/joiner"]["ros__parameters"]
+    assert set(params) == set(PARAMETERS)
+    assert {k: v for k, v in params.items()} == {k: v[0] for k, v in PARAMETERS.items()}
+
+
+def test_front_end_example_produces_a_valid_local_map():
+    code = README.split("**A front-end in 20 lines**")[1].split("```python")[1].split("```")[0]
+    function = code.split("rclpy.init()")[0]  # the example without starting ROS
+    assert len(code.strip().splitlines()) <= 22
+    namespace: dict[str, object] = {}
+    exec(function, namespace)  # noqa: S102 - the README's own example
+    msg = namespace["local_map_msg"](1, 0, 1, [1, 7], [0, 1], [1.0, 0.0, 0.05, 2.0, 1.0], [(i, i, 100.0) for i in range(5)])
+    decoded = decode_map(*parts(msg))
+    assert decoded.seq == 1 and decoded.local_map.frame_id == 0 and decoded.local_map.end_id == 1
+    assert list(decoded.local_map.ids) == [1, 7] and decoded.local_map.info_dense()[4, 4] == 100.0
+
+
+def test_core_never_imports_ros():
+    root = Path(__file__).resolve().parents[1] / "linear_slam_ros"
+    for path in root.rglob("*.py"):
+        if "ros" in path.relative_to(root).parts[:-1]:
+            continue
+        text = path.read_text()
+        assert not re.search(r"^\s*(import|from)\s+(rclpy|rosbags|std_msgs|msg_adapters)", text, re.M), path

@@ -1,4 +1,4 @@
-"""Offline command line: ``python -m linear_slam_ros join|refine|unpack|benchmark ...``.
+"""Offline command line: ``python -m linear_slam_ros join|refine|lago|unpack|benchmark ...``.
 
 Only parses arguments and calls library functions; everything it does is scriptable.
 """
@@ -110,6 +110,40 @@ def cmd_refine(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_lago(args: argparse.Namespace) -> int:
+    """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine."""
+    from linear_slam_ros.lago import edge_maps, graph_from_local_maps, lago, read_g2o
+    from linear_slam_ros.nonlinear import gauss_newton
+    from linear_slam_ros.objective import MapObjective
+
+    source = Path(args.graph)
+    if source.suffix == ".g2o":
+        graph = read_g2o(source)
+    else:
+        graph = graph_from_local_maps(list(read_dataset(source).maps))
+    result = lago(graph, args.anchor)
+    edges = edge_maps(graph)
+    report: dict[str, object] = {
+        "graph": source.name,
+        "n_poses": int(graph.pose_ids.size),
+        "n_edges": graph.n_edges,
+        "seconds": result.seconds,
+        "chi2": MapObjective.build(result.map, edges).chi2(result.map.x),
+        "chords_corrected": int((result.chord_corrections != 0).sum()),
+        "edges_with_coupled_information": result.n_coupled_edges,
+    }
+    out_map = result.map
+    if args.refine:
+        t0 = time.perf_counter()
+        refined = gauss_newton(result.map, edges)
+        report.update({"nls_chi2": refined.chi2, "nls_iterations": refined.iterations, "nls_seconds": time.perf_counter() - t0})
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_poses(args.out / "poses.txt", out_map, out_map.frame_id)
+    _write_report(args.out, report)
+    logger.info("%s: LAGO chi2 %.3f in %.3f s", source.name, report["chi2"], result.seconds)
+    return 0
+
+
 def cmd_unpack(args: argparse.Namespace) -> int:
     """Unpack every ``*.tar.xz`` dataset of a folder into the cache (idempotent)."""
     from linear_slam_ros.datasets import resolve_dataset_dir
@@ -154,6 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
     p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)")
     common(p_ref)
     p_ref.set_defaults(func=cmd_refine)
+    p_lago = sub.add_parser("lago", help="closed-form estimate of a 2D pose graph (LAGO)")
+    p_lago.add_argument("graph", type=Path, help="a .g2o file (VERTEX_SE2/EDGE_SE2) or a pose-only dataset")
+    p_lago.add_argument("--out", type=Path, required=True)
+    p_lago.add_argument("--anchor", type=int, default=None, help="pose held at the origin (default: smallest id)")
+    p_lago.add_argument("--refine", action="store_true", help="also run Gauss-Newton from the LAGO estimate")
+    p_lago.set_defaults(func=cmd_lago)
     p_unpack = sub.add_parser("unpack", help="unpack every dataset archive into .cache/datasets")
     p_unpack.add_argument("datasets_dir", type=Path, nargs="?", default=Path("../shared/datasets"))
     p_unpack.set_defaults(func=cmd_unpack)

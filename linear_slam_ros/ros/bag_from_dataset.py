@@ -27,38 +27,55 @@ START_NS = 1_700_000_000 * 10**9
 """Bag time of the first message (a fixed, recognisable instant)."""
 
 
-def star_chunk_of(local_map: LocalMap, seq: int) -> PoseGraphChunk:
-    """Return the star pose-graph chunk equivalent to a pose-only local map with block-diagonal
-    information (edges from its frame pose); cross-edge information terms are dropped."""
-    p = pose_size(local_map.dim)
-    k = local_map.n_vars
-    info = local_map.info_dense()
-    blocks = np.stack([info[i * p : (i + 1) * p, i * p : (i + 1) * p] for i in range(k)])
-    return PoseGraphChunk(
-        local_map.dim, seq, np.full(k, local_map.frame_id, dtype=np.int64), local_map.ids.copy(),
-        local_map.x.reshape(k, p).copy(), blocks,
-    )
+def chunk_of(maps: Sequence[LocalMap], seq: int) -> PoseGraphChunk:
+    """Return the pose-graph chunk of consecutive pose-only local maps: each map's edges from its
+    frame pose to its poses (information: the map's diagonal blocks; cross terms dropped)."""
+    p = pose_size(maps[0].dim)
+    f, t, z, info = [], [], [], []
+    for m in maps:
+        dense = m.info_dense()
+        for i in range(m.n_vars):
+            f.append(m.frame_id)
+            t.append(int(m.ids[i]))
+            z.append(m.x[i * p : (i + 1) * p])
+            info.append(dense[i * p : (i + 1) * p, i * p : (i + 1) * p])
+    return PoseGraphChunk(maps[0].dim, seq, np.array(f, np.int64), np.array(t, np.int64), np.array(z), np.array(info))
 
 
-def records(maps: Sequence[LocalMap], rate_hz: float, topic: str, as_pose_graph: bool) -> Iterator[tuple[str, int, object]]:
-    """Yield ``(topic, time_ns, encoded)`` for each local map, ``seq`` 1..N, at ``rate_hz``."""
+def records(
+    maps: Sequence[LocalMap], rate_hz: float, topic: str, as_pose_graph: bool, maps_per_chunk: int = 1
+) -> Iterator[tuple[str, int, object]]:
+    """Yield ``(topic, time_ns, encoded)`` messages, ``seq`` 1..N, at ``rate_hz``.
+
+    Local maps go one per message; as pose-graph chunks, ``maps_per_chunk`` consecutive maps'
+    edges make one chunk (more than one makes chains with loop closures, estimated by LAGO).
+    """
     period = int(round(1e9 / rate_hz))
-    for i, m in enumerate(maps, start=1):
+    groups = [maps[i : i + maps_per_chunk] for i in range(0, len(maps), maps_per_chunk)] if as_pose_graph else [[m] for m in maps]
+    for i, group in enumerate(groups, start=1):
         t = START_NS + (i - 1) * period
         stamp = Stamp(t // 10**9, t % 10**9)
         if as_pose_graph:
-            yield topic, t, encode_chunk(star_chunk_of(m, i), stamp)
+            yield topic, t, encode_chunk(chunk_of(group, i), stamp)
         else:
-            yield topic, t, encode_map(m, i, stamp)
+            yield topic, t, encode_map(group[0], i, stamp)
 
 
-def make_bag(dataset: Path, out: Path, rate_hz: float = 10.0, topic: str | None = None, as_pose_graph: bool = False, overwrite: bool = True) -> int:
+def make_bag(
+    dataset: Path,
+    out: Path,
+    rate_hz: float = 10.0,
+    topic: str | None = None,
+    as_pose_graph: bool = False,
+    maps_per_chunk: int = 1,
+    overwrite: bool = True,
+) -> int:
     """Write the bag of a dataset; return the number of messages."""
     ds = read_dataset(dataset)
     if as_pose_graph and ds.kind.has_features:
         raise LinearSlamError(f"{ds.name} is a pose-feature dataset: only pose-only datasets become pose_graph chunks")
     name = topic or ("pose_graph" if as_pose_graph else "local_map")
-    return write_messages(out, records(ds.maps, rate_hz, name, as_pose_graph), overwrite=overwrite)
+    return write_messages(out, records(ds.maps, rate_hz, name, as_pose_graph, maps_per_chunk), overwrite=overwrite)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -69,10 +86,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=10.0, help="message rate in bag time, Hz")
     ap.add_argument("--topic", default=None, help="topic name (default local_map, or pose_graph)")
     ap.add_argument("--as-pose-graph", action="store_true", help="write pose-only maps as pose_graph chunks")
+    ap.add_argument("--maps-per-chunk", type=int, default=1, help="local maps per pose_graph chunk")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
-        n = make_bag(args.dataset, args.out, args.rate, args.topic, args.as_pose_graph)
+        n = make_bag(args.dataset, args.out, args.rate, args.topic, args.as_pose_graph, args.maps_per_chunk)
     except LinearSlamError as exc:
         logger.error("%s", exc)
         return 2

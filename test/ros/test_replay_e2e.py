@@ -145,3 +145,55 @@ def parts_of(raw: bytes):
     from msg_adapters.bags import bag_parts, deserialize
 
     return bag_parts(deserialize(raw))
+
+
+CHUNK_CASES = [
+    pytest.param("Intel", id="Intel-chunks"),
+    pytest.param("manhattanOlson3500", id="Manhattan-chunks", marks=pytest.mark.slow),
+]
+MAPS_PER_CHUNK = 5
+
+
+@pytest.mark.parametrize("name", CHUNK_CASES)
+def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark):
+    """Raw relative-pose chunks (5 local maps' edges each: chains with loop closures) -> LAGO ->
+    joining, with no iteration and no initial guess anywhere."""
+    from linear_slam_ros.frames import change_frame
+    from linear_slam_ros.lago import edge_maps, graph_from_local_maps
+    from linear_slam_ros.nonlinear import gauss_newton
+    from linear_slam_ros.objective import MapObjective
+    from linear_slam_ros.pose_graph import chunk_to_local_map
+    from linear_slam_ros.ros.bag_from_dataset import chunk_of
+
+    maps = list(read_benchmark(name).maps)
+    bag = REPO / "bags" / f"{name}_chunks{MAPS_PER_CHUNK}"
+    if not (bag / "metadata.yaml").exists():
+        make_bag(DATASETS / f"{name}.tar.xz", bag, as_pose_graph=True, maps_per_chunk=MAPS_PER_CHUNK)
+    records = list(read_messages(bag))
+    joiner = start_joiner(mode="online-dc", publish_rate=10.0)
+    t0 = time.monotonic()
+    play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    final, t_final = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(records), 600.0, joiner)
+    code, output = joiner.stop()
+    assert code == 0, output[-2000:]
+    assert final.stats["n_rejected"] == 0
+
+    chunks = [chunk_of(maps[i : i + MAPS_PER_CHUNK], i // MAPS_PER_CHUNK + 1) for i in range(0, len(maps), MAPS_PER_CHUNK)]
+    offline = run_join([chunk_to_local_map(c) for c in chunks], "online-dc")
+    np.testing.assert_allclose(final.local_map.x, offline.result.x, rtol=0, atol=1e-9)
+
+    in_first = change_frame(final.local_map, 0)
+    edges = edge_maps(graph_from_local_maps(maps))
+    objective = MapObjective.build(in_first, edges)
+    chi2_graph = objective.chi2(in_first.x)
+    chi2_dc = chi2(run_join(maps, "dc").result, maps)
+    chi2_nls = gauss_newton(in_first, edges).chi2
+    assert chi2_graph == pytest.approx(chi2(in_first, maps), rel=1e-9)  # star maps: the same objective
+    assert chi2_nls <= chi2_graph <= 1.1 * chi2_dc
+    out = REPO / "out" / "e2e"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}_pose_graph_chunks.json").write_text(json.dumps({
+        "dataset": name, "chunks": len(records), "maps_per_chunk": MAPS_PER_CHUNK,
+        "end_to_end_seconds": t_final - t0, "node_join_ms_p99": final.stats["join_ms_p99"],
+        "chi2_lago_chunks_joined": chi2_graph, "chi2_dataset_maps_dc": chi2_dc, "chi2_nonlinear_ls": chi2_nls,
+    }, indent=2) + "\n")

@@ -6,7 +6,7 @@ import enum
 import resource
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Sequence, TypeVar
 
 from linear_slam_ros.errors import InvalidMapError
 from linear_slam_ros.joining import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
@@ -52,6 +52,23 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+S = TypeVar("S")
+
+
+def _timed_fold(
+    step: Callable[[S, LocalMap], S], state: S, maps: Sequence[LocalMap], steps: list[float],
+    progress: Callable[[int], None] | None,
+) -> S:
+    """Apply ``step`` to each map in turn, appending each step's wall time to ``steps``."""
+    for m in maps:
+        t0 = time.perf_counter()
+        state = step(state, m)
+        steps.append(time.perf_counter() - t0)
+        if progress:
+            progress(1)
+    return state
+
+
 def run_join(
     maps: Sequence[LocalMap], method: JoinMethod | str, progress: Callable[[int], None] | None = None
 ) -> JoinRun:
@@ -74,23 +91,11 @@ def run_join(
     with blas_threads(blas_threads_for(method.value)):
         start = clock()
         if method is JoinMethod.SEQUENTIAL:
-            state = SequentialState()
-            for m in maps:
-                t0 = clock()
-                state = sequential_step(state, m)
-                steps.append(clock() - t0)
-                if progress:
-                    progress(1)
+            state = _timed_fold(sequential_step, SequentialState(), maps, steps, progress)
             assert state.global_map is not None
             result = state.global_map.to_local_map()
         elif method is JoinMethod.ONLINE_DC:
-            dc_state = OnlineDCState()
-            for m in maps:
-                t0 = clock()
-                dc_state = online_dc_step(dc_state, m)
-                steps.append(clock() - t0)
-                if progress:
-                    progress(1)
+            dc_state = _timed_fold(online_dc_step, OnlineDCState(), maps, steps, progress)
             t0 = clock()
             result = online_dc_result(dc_state)
             steps[-1] += clock() - t0

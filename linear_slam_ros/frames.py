@@ -31,8 +31,9 @@ class Layout(NamedTuple):
     """Index arrays of a state layout around the slot of a new frame pose.
 
     Attributes:
-        pos_idx: ``(k, d)`` indices of feature positions and pose translations (slot excluded).
-        ang_idx: ``(m, a)`` indices of pose angles (slot excluded).
+        pos_idx: ``(k, d)`` indices of feature positions and pose translations (slot excluded,
+            except in the dense path, where the slot's entries are written last and win).
+        ang_idx: ``(m, a)`` indices of pose angles (slot excluded likewise).
         frame_cols: ``(p,)`` indices of the slot's scalars.
     """
 
@@ -215,7 +216,14 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
             f"pose {new_frame_id}: that pose is not in the map"
         )
     dim, kinds = local_map.dim, local_map.kinds
-    layout = frame_layout(dim, kinds, slot, local_map.offsets)
+    n = local_map.state_dim
+    if not sp.issparse(local_map.info) and n <= DENSE_MATMUL_MAX:
+        # Small dense map: include the slot in the vectorised blocks (its rows are overwritten
+        # by the slot's own block), which saves building a layout without it.
+        off = int(local_map.offsets[slot])
+        layout = Layout(local_map.position_index, local_map.angle_index, off + np.arange(pose_size(dim)))
+    else:
+        layout = frame_layout(dim, kinds, slot, local_map.offsets)
     x_new = reframe(dim, local_map.x, layout)
     info = transform_information(local_map.info, reframe_jacobian(dim, x_new, layout))
     ids = local_map.ids.copy()

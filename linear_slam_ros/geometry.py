@@ -53,9 +53,8 @@ def check_dim(dim: int) -> int:
 def wrap_angle(angle: npt.ArrayLike) -> FloatArray:
     """Wrap angles (rad) into ``(-pi, pi]``, elementwise."""
     a = np.asarray(angle, dtype=np.float64)
-    wrapped = np.mod(a + np.pi, TWO_PI) - np.pi
-    # np.mod maps +pi to -pi: move that edge back to +pi.
-    return np.where(wrapped == -np.pi, np.pi, wrapped)
+    # pi - ((pi - a) mod 2 pi) lies in (-pi, pi]: +pi stays +pi, -pi maps to +pi.
+    return np.pi - np.mod(np.pi - a, TWO_PI)
 
 
 # --------------------------------------------------------------------------- rotations

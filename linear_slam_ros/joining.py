@@ -106,11 +106,17 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
         info_b = to_dense(map_b.info)
         info = np.zeros((n, n))
         info[:n_a, :n_a] = info_a
-        info[np.ix_(b_to_union, b_to_union)] += info_b
-        rhs = np.zeros(n)
-        rhs[:n_a] = info_a @ z_a
-        rhs[b_to_union] += info_b @ z_b
-        x = solve_dense_spd(info, rhs)
+        if not new.all():
+            info[np.ix_(b_to_union, b_to_union)] += info_b
+            rhs = np.zeros(n)
+            rhs[:n_a] = info_a @ z_a
+            rhs[b_to_union] += info_b @ z_b
+            x = solve_dense_spd(info, rhs)
+        else:  # nothing in common: the least-squares solution is both estimates side by side
+            info[np.ix_(b_to_union, b_to_union)] = info_b
+            x = np.empty(n)
+            x[:n_a] = z_a
+            x[b_to_union] = z_b
         joined_info: FloatArray | sp.csr_matrix = info
     else:
         coo_a = to_csr(map_a.info).tocoo()

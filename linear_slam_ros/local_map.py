@@ -107,6 +107,16 @@ class VariableLayout:
         return np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
 
     @functools.cached_property
+    def position_index(self) -> IntArray:
+        """``(m, d)`` state indices of every variable's position (feature) or translation (pose)."""
+        return self.offsets[:, None] + np.arange(self.dim)
+
+    @functools.cached_property
+    def angle_index(self) -> IntArray:
+        """``(m_poses, a)`` state indices of every pose's angles, in state order."""
+        return self.offsets[self.kinds == POSE][:, None] + np.arange(self.dim, self.dim + angle_size(self.dim))
+
+    @functools.cached_property
     def keys(self) -> IntArray:
         """``(m,)`` variable keys ``2 * id + kind``."""
         return var_keys(self.ids, self.kinds)

@@ -32,9 +32,16 @@ benchmark: setup
 
 setup: $(VENV)/.installed install/.built .cache/datasets/.unpacked
 
-$(VENV)/.installed: requirements.txt
+# CHOLMOD (scikit-sparse) builds against Debian's SuiteSparse and runs on its OpenBLAS.
+SUITESPARSE_H := /usr/include/suitesparse/cholmod.h
+$(SUITESPARSE_H):
+	@if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libsuitesparse-dev libopenblas-dev >/dev/null; \
+	else echo "SuiteSparse headers missing: run 'sudo apt-get install libsuitesparse-dev libopenblas-dev' (rosdep key: suitesparse)" >&2; exit 1; fi
+
+$(VENV)/.installed: requirements.txt $(SUITESPARSE_H)
 	$(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements.txt
+	SUITESPARSE_INCLUDE_DIR=/usr/include/suitesparse $(VENV)/bin/pip install --disable-pip-version-check -q -r requirements.txt
 	touch $(VENV)/COLCON_IGNORE
 	touch $@
 

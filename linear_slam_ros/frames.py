@@ -194,8 +194,10 @@ def transform_information(info: InfoMatrix, back: FrameJacobian) -> InfoMatrix:
             out = g_t @ (g_t @ np.asarray(info)).T  # G^T (I G), I symmetric
         return 0.5 * (out + out.T)
     g_t = back.csr(n, transpose=True)
-    out = (g_t @ info.tocsr() @ g_t.T).tocsr()
-    return ((out + out.T) * 0.5).tocsr()
+    # G^T I G is symmetric up to round-off (1e-16 relative); the solvers read one triangle and
+    # the message encoder the upper one, so it is not symmetrised here (a transpose and an add
+    # on the largest matrices of divide and conquer).
+    return (g_t @ info.tocsr() @ g_t.T).tocsr()
 
 
 def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
@@ -228,4 +230,10 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     info = transform_information(local_map.info, reframe_jacobian(dim, x_new, layout))
     ids = local_map.ids.copy()
     ids[slot] = local_map.frame_id
-    return local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)
+    moved = local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)
+    # same kinds, same layout: share the layout caches
+    moved.__dict__.update({k: local_map.__dict__[k] for k in _LAYOUT_CACHES if k in local_map.__dict__})
+    return moved
+
+
+_LAYOUT_CACHES = ("sizes", "offsets", "angles", "position_index", "angle_index")

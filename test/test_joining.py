@@ -117,9 +117,11 @@ def test_pose_only_common_angles_are_wrapped(rng):
 def test_frame_error_names_both_ids(rng):
     world = make_world(2, 12, 10, rng)
     maps = exact_local_maps(world, rng, 2)
-    with pytest.raises(FrameError, match="frame of pose 6, which is not in map .* \\(frame pose 0\\).*pose 0 is not in"):
+    with pytest.raises(FrameError, match="map 'exact_4' \\(frame pose 6\\) does not hold pose 2, the end pose of map 'exact_1' \\(frame pose 0\\)"):
         join_pair(maps[0], maps[3])
-    with pytest.raises(FrameError, match="submap 'exact_4' is in the frame of pose 6, which is not in the global map \\(frame pose 2\\)"):
+    with pytest.raises(FrameError, match="frame of pose 6, which is not in map .* \\(frame pose 0\\).*pose 0 is not in"):
+        align_frames(maps[0], maps[3])
+    with pytest.raises(FrameError, match="submap 'exact_4' is in the frame of pose 6 and does not hold pose 2, the end pose of the global map"):
         online_dc_step(online_dc_step(OnlineDCState(), maps[0]), maps[3])
 
 

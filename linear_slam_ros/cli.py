@@ -71,6 +71,8 @@ def report_for(run: JoinRun, dataset: Dataset, chi2_value: float) -> dict[str, o
 def cmd_join(args: argparse.Namespace) -> int:
     """Join a dataset and write poses, features and report.json."""
     dataset = read_dataset(args.dataset, kind=args.kind)
+    if args.map_type == "feature-only":
+        return _join_feature_only(args, dataset, refine_too=False)
     method = JoinMethod(args.method)
     run = join_dataset(dataset, method)
     origin = dataset.maps[0].frame_id
@@ -84,9 +86,64 @@ def cmd_join(args: argparse.Namespace) -> int:
     return 0
 
 
+def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: bool) -> int:
+    """Feature-only (D-SLAM) joining of a pose-feature dataset: precondition, marginalise, join."""
+    from linear_slam_ros import feature_maps as fm
+
+    if not dataset.kind.has_features:
+        logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
+        return 2
+    if args.method == JoinMethod.ONLINE_DC.value:
+        logger.error("feature-only joining supports --method sequential or dc")
+        return 2
+    steps: list[float] = []
+    t0 = time.perf_counter()
+    groups = fm.precondition(dataset.maps)
+    feature_maps = [fm.to_feature_only(g) for g in groups]
+    joiner = fm.join_features_sequential if args.method == "sequential" else fm.join_features_dc
+    joined = joiner(feature_maps, on_join=steps.append)
+    seconds = time.perf_counter() - t0
+    residual, _ = fm.feature_residuals(joined, joined.x, feature_maps, jacobian=False)
+    import scipy.sparse as sp
+
+    weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
+    report: dict[str, object] = {
+        "dataset": dataset.name,
+        "kind": dataset.kind.value,
+        "map_type": "feature-only",
+        "method": args.method,
+        "n_submaps": len(dataset.maps),
+        "n_feature_maps": len(feature_maps),
+        "state_dim": joined.state_dim,
+        "seconds": seconds,
+        **latency_summary(steps),
+        "latency_unit": "per pairwise join",
+        "peak_rss_mb": peak_rss_mb(),
+        "chi2": float(residual @ (weight @ residual)),
+        "info_nnz": int(sp.csr_matrix(joined.info).count_nonzero()),
+        "frame_features": list(joined.frame_ids),
+    }
+    out_map = joined
+    if refine_too:
+        refined = fm.refine_features(joined, feature_maps)
+        report.update({"linear_chi2": report["chi2"], "chi2": refined.chi2, "refine_iterations": refined.iterations,
+                       "rmse_feature_linear_vs_nls": fm.feature_rmse(joined, refined.map)})
+        out_map = refined.map
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "features.txt", "w") as fh:
+        for fid, pos in sorted(out_map.positions().items()):
+            fh.write(f"{fid} " + " ".join(f"{v:.17g}" for v in pos) + "\n")
+    _write_report(args.out, report)
+    logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
+                dataset.name, args.method, len(dataset.maps), len(feature_maps), seconds, report["chi2"])
+    return 0
+
+
 def cmd_refine(args: argparse.Namespace) -> int:
     """Join, then refine by Gauss-Newton (Nonlinear LS), and write the refined result."""
     dataset = read_dataset(args.dataset, kind=args.kind)
+    if args.map_type == "feature-only":
+        return _join_feature_only(args, dataset, refine_too=True)
     method = JoinMethod(args.method)
     run = join_dataset(dataset, method)
     origin = dataset.maps[0].frame_id
@@ -181,6 +238,10 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--method", choices=[m.value for m in JoinMethod], default=JoinMethod.DC.value)
         p.add_argument("--kind", choices=[k.value for k in MapKind], default=None, help="override the detected map kind")
         p.add_argument("--out", type=Path, required=True, help="output folder")
+        p.add_argument(
+            "--map-type", choices=["as-is", "feature-only"], default="as-is",
+            help="feature-only: marginalise poses and join feature-only (D-SLAM) maps in feature-defined frames",
+        )
 
     p_join = sub.add_parser("join", help="join a dataset's local maps")
     common(p_join)

@@ -101,38 +101,53 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
         ref = z_a[b_to_union[common_angles]]
         z_b[common_angles] = ref + wrap_angle(z_b[common_angles] - ref)
 
-    if n <= DENSE_MAX:
-        info_a = to_dense(map_a.info)
-        info_b = to_dense(map_b.info)
-        info = np.zeros((n, n))
-        info[:n_a, :n_a] = info_a
-        if not new.all():
-            info[np.ix_(b_to_union, b_to_union)] += info_b
-            rhs = np.zeros(n)
-            rhs[:n_a] = info_a @ z_a
-            rhs[b_to_union] += info_b @ z_b
-            x = solve_dense_spd(info, rhs)
-        else:  # nothing in common: the least-squares solution is both estimates side by side
-            info[np.ix_(b_to_union, b_to_union)] = info_b
-            x = np.empty(n)
-            x[:n_a] = z_a
-            x[b_to_union] = z_b
-        joined_info: FloatArray | sp.csr_matrix = info
-    else:
-        coo_a = to_csr(map_a.info).tocoo()
-        coo_b = to_csr(map_b.info).tocoo()
-        rows = np.concatenate([coo_a.row, b_to_union[coo_b.row]])
-        cols = np.concatenate([coo_a.col, b_to_union[coo_b.col]])
-        data = np.concatenate([coo_a.data, coo_b.data])
-        joined_info = sp.csr_matrix((data, (rows, cols)), shape=(n, n))
-        rhs = np.zeros(n)
-        rhs[:n_a] = coo_a.tocsr() @ z_a
-        rhs[b_to_union] += coo_b.tocsr() @ z_b
-        x = solve_sparse_spd(joined_info, rhs)
+    x, joined_info = solve_union(map_a.info, z_a, map_b.info, z_b, b_to_union, n)
     end_id = map_b.end_id if map_b.end_id is not None else map_a.end_id
     joined = LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name)
     joined.__dict__.update(sizes=sizes, offsets=offsets)  # layout already known: seed the caches
     return joined
+
+
+def solve_union(
+    info_a: FloatArray | sp.spmatrix,
+    z_a: FloatArray,
+    info_b: FloatArray | sp.spmatrix,
+    z_b: FloatArray,
+    b_to_union: IntArray,
+    n: int,
+) -> tuple[FloatArray, FloatArray | sp.csr_matrix]:
+    """Solve eqs. (16)-(17) for two observations of a union state.
+
+    Map ``a`` observes the first ``len(z_a)`` scalars of the union; map ``b`` observes the
+    scalars ``b_to_union``. Returns the estimate and ``A^T I_Z A`` (dense up to
+    :data:`DENSE_MAX` scalars, else CSR). With nothing in common there is nothing to solve.
+    """
+    n_a = z_a.size
+    disjoint = b_to_union.size == 0 or int(b_to_union.min()) >= n_a
+    if n <= DENSE_MAX:
+        dense_a, dense_b = to_dense(info_a), to_dense(info_b)
+        info = np.zeros((n, n))
+        info[:n_a, :n_a] = dense_a
+        if disjoint:  # the least-squares solution is both estimates side by side
+            info[np.ix_(b_to_union, b_to_union)] = dense_b
+            x = np.empty(n)
+            x[:n_a] = z_a
+            x[b_to_union] = z_b
+            return x, info
+        info[np.ix_(b_to_union, b_to_union)] += dense_b
+        rhs = np.zeros(n)
+        rhs[:n_a] = dense_a @ z_a
+        rhs[b_to_union] += dense_b @ z_b
+        return solve_dense_spd(info, rhs), info
+    coo_a = to_csr(info_a).tocoo()
+    coo_b = to_csr(info_b).tocoo()
+    rows = np.concatenate([coo_a.row, b_to_union[coo_b.row]])
+    cols = np.concatenate([coo_a.col, b_to_union[coo_b.col]])
+    joined = sp.csr_matrix((np.concatenate([coo_a.data, coo_b.data]), (rows, cols)), shape=(n, n))
+    rhs = np.zeros(n)
+    rhs[:n_a] = coo_a.tocsr() @ z_a
+    rhs[b_to_union] += coo_b.tocsr() @ z_b
+    return solve_sparse_spd(joined, rhs), joined
 
 
 def to_end_frame(local_map: LocalMap) -> LocalMap:

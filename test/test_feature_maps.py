@@ -1,0 +1,111 @@
+"""Feature-only maps (Sec. 7, App. B): frames, exact Jacobians, conversion, joining, Lemma 1, golden."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from linear_slam_ros import feature_maps as fm
+from linear_slam_ros.errors import GeometryError
+from linear_slam_ros.synthetic import exact_local_maps, make_world, noisy_local_maps
+from support import CACHE, dataset_archive
+
+
+def _fd_jacobian(dim, full, rows, eps=1e-6):
+    flat = full.ravel()
+    cols = []
+    for k in range(flat.size):
+        dp = np.zeros_like(flat)
+        dp[k] = eps
+        plus, _ = fm.reframe_features(dim, (flat + dp).reshape(full.shape), rows)
+        minus, _ = fm.reframe_features(dim, (flat - dp).reshape(full.shape), rows)
+        cols.append((plus - minus).ravel() / (2 * eps))
+    return np.stack(cols, -1)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_frame_definition_and_jacobian(dim, rng):
+    full = rng.normal(size=(6, dim)) * 5
+    rows = [2, 4, 0][: fm.n_frame_features(dim)]
+    new, jac = fm.reframe_features(dim, full, rows)
+    np.testing.assert_allclose(new[2], np.zeros(dim), atol=1e-12)  # F_O at the origin
+    np.testing.assert_allclose(new[4][1:], np.zeros(dim - 1), atol=1e-12)  # F_X on the x axis
+    assert new[4][0] > 0
+    if dim == 3:
+        assert abs(new[0][2]) < 1e-12 and new[0][1] > 0  # F_Y in the x-y plane
+    np.testing.assert_allclose(jac.toarray(), _fd_jacobian(dim, full, rows), atol=1e-6)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_change_of_feature_frame_round_trip(dim):
+    world = make_world(dim, 12, 20, np.random.default_rng(1))
+    local = noisy_local_maps(world, np.random.default_rng(2), steps_per_map=6, sensor_range=9)[0]
+    fmap = fm.to_feature_only(local)
+    other = tuple(int(i) for i in fmap.ids[: fm.n_frame_features(dim)])
+    there = fm.change_feature_frame(fmap, other)
+    back = fm.change_feature_frame(there, fmap.frame_ids)
+    np.testing.assert_array_equal(back.ids, fmap.ids)
+    np.testing.assert_allclose(back.x, fmap.x, atol=1e-10)
+    np.testing.assert_allclose(back.info, fmap.info, rtol=1e-8, atol=1e-6)
+
+
+def test_degenerate_frame_features_are_rejected():
+    with pytest.raises(GeometryError, match="frame features F_O and F_X coincide"):
+        fm.frame_rotation(2, np.array([1.0, 2.0]), np.array([1.0, 2.0]))
+    with pytest.raises(GeometryError, match="F_O, F_X, F_Y are collinear"):
+        fm.frame_rotation(3, np.zeros(3), np.array([1.0, 1, 1]), np.array([2.0, 2, 2]))
+    with pytest.raises(GeometryError, match="F_O, F_X, F_Y are collinear or coincident"):
+        fm.frame_rotation(3, np.zeros(3), np.array([1.0, 0, 0]), np.zeros(3))
+    with pytest.raises(GeometryError, match="a 3D frame needs 3 common features, only 2 available"):
+        fm.choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3)}, [1, 2])
+    with pytest.raises(GeometryError, match="common features \\[1, 2, 3\\] are collinear"):
+        fm.choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3), 3: 2 * np.ones(3)}, [1, 2, 3])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("joiner", [fm.join_features_sequential, fm.join_features_dc])
+def test_noise_free_maps_give_the_truth(dim, joiner):
+    rng = np.random.default_rng(3)
+    world = make_world(dim, 24, 40, rng)
+    maps = fm.precondition(exact_local_maps(world, rng, poses_per_map=3, sensor_range=9))
+    joined = joiner([fm.to_feature_only(m) for m in maps])
+    truth, _ = fm.reframe_features(dim, np.array([world.features[int(f)] for f in joined.all_ids]), list(range(fm.n_frame_features(dim))))
+    np.testing.assert_allclose(joined.full(), truth, atol=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_lemma_1_for_feature_only_maps(dim):
+    """Joining two feature-only maps by Gauss-Newton in a new frame equals linear LS + transform."""
+    world = make_world(dim, 12, 30, np.random.default_rng(5))
+    locals_ = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=6, sensor_range=9, sigma_observation=0.1)
+    a, b = fm.to_feature_only(locals_[0]), fm.to_feature_only(locals_[1])
+    common = fm.common_features(a, b)
+    frame = fm.choose_frame_features(dim, a.positions(), common)
+    a, b = fm.change_feature_frame(a, frame), fm.change_feature_frame(b, frame)
+    linear = fm.join_feature_maps(a, b)  # the linear LS in the shared frame
+    new_frame = tuple(int(f) for f in linear.ids[-fm.n_frame_features(dim):])
+    expected = fm.change_feature_frame(linear, new_frame)  # ... plus the transform
+    start = fm.FeatureMap(dim, expected.frame_ids, expected.ids, expected.x + 0.01, expected.info, "start")
+    optimum = fm.refine_features(start, [a, b]).map
+    np.testing.assert_allclose(optimum.x, expected.x, atol=1e-8)
+    scale = np.abs(expected.info).max()
+    np.testing.assert_allclose(np.asarray(optimum.info.toarray()) / scale, np.asarray(expected.info) / scale, atol=1e-8)
+
+
+@pytest.mark.parametrize("name, method, bound", [
+    ("VicPark_200_local_maps", "sequential", 0.20),
+    ("DLR_200_local_maps", "sequential", 0.40),
+    ("DLR_200_local_maps", "dc", 0.40),
+])
+def test_feature_rmse_against_the_feature_only_optimum(name, method, bound, tmp_path, monkeypatch):
+    from linear_slam_ros.cli import main
+
+    monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
+    args = ["refine", str(dataset_archive(name)), "--map-type", "feature-only", "--method", method, "--out", str(tmp_path)]
+    assert main(args) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["rmse_feature_linear_vs_nls"] <= bound
+    assert report["chi2"] <= report["linear_chi2"]
+    assert not (tmp_path / "poses.txt").exists() and (tmp_path / "features.txt").exists()

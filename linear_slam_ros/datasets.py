@@ -21,7 +21,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.errors import DatasetError, InvalidMapError
-from linear_slam_ros.geometry import pose_size, wrap_angle
+from linear_slam_ros.geometry import pose_size
 from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, default_end_pose, fuse_repeated, var_keys
 from linear_slam_ros.solvers import DENSE_MAX
 

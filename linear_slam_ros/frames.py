@@ -130,8 +130,6 @@ class FrameJacobian(NamedTuple):
         """Return the ``(n, n)`` Jacobian (or its transpose) as CSR."""
         pos_idx, ang_idx, frame_cols = self.layout
         k, d = pos_idx.shape
-        m, a = ang_idx.shape
-        p = frame_cols.size
         parts = [
             (pos_idx[:, :, None], pos_idx[:, None, :], np.broadcast_to(self.rot, (k, d, d))),
             (pos_idx[:, :, None], frame_cols[None, None, :], self.pos_frame),

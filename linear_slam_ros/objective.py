@@ -64,7 +64,6 @@ class MapObjective:
             FrameError: a local map's variable or frame pose is missing from ``layout``.
         """
         dim = layout.dim
-        p = pose_size(dim)
         lookup = layout.key_set
         offsets = layout.offsets
         feat_rows, feat_cols, feat_ref, pose_rows, pose_cols, pose_ref = [], [], [], [], [], []

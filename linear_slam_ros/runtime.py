@@ -56,6 +56,18 @@ def blas_threads(n_threads: int | None) -> AbstractContextManager[object]:
     return threadpool_limits(limits=n_threads, user_api="blas")
 
 
+def set_blas_threads(n_threads: int | None) -> None:
+    """Limit BLAS threads for the rest of the process (``None``: leave as is); for long-lived
+    programs such as the node."""
+    if n_threads is None:
+        return
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a pinned dependency
+        return
+    threadpool_limits(limits=n_threads, user_api="blas")  # applies on construction
+
+
 def blas_threads_for(method: str) -> int | None:
     """Return the BLAS thread count measured best for a joining method (1 for sequential)."""
     return 1 if method == "sequential" else None

@@ -71,5 +71,5 @@ def test_same_frame_is_identity(rng):
 
 def test_unknown_frame_pose_is_rejected(rng):
     m = _map(2, rng)
-    with pytest.raises(FrameError, match=f"to the frame of pose 999: that pose is not in the map"):
+    with pytest.raises(FrameError, match="to the frame of pose 999: that pose is not in the map"):
         change_frame(m, 999)

@@ -31,7 +31,7 @@ from linear_slam_ros.frames import change_frame
 from linear_slam_ros.joiner_core import OUTPUT_FRAMES, Joiner, JoinerState, global_map_of
 from linear_slam_ros.pose_graph import chunk_to_local_map
 from linear_slam_ros.runner import JoinMethod
-from linear_slam_ros.runtime import blas_threads, blas_threads_for, tune_allocator
+from linear_slam_ros.runtime import blas_threads_for, set_blas_threads, tune_allocator
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_map
 from msg_adapters.ros import parts, to_msg
 from msg_adapters.views import current_pose_msg, feature_covariances, feature_markers, path_msg
@@ -82,8 +82,7 @@ class JoinerNode(Node):
             self.set_parameters([Parameter("output_frame", value="end_pose")])
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tune_allocator()
-        self._blas = blas_threads(blas_threads_for(mode))
-        self._blas.__enter__()
+        set_blas_threads(blas_threads_for(mode))
 
         self.joiner = Joiner(JoinMethod(mode), reorder_window=int(self.get_parameter("reorder_window").value))
         self.joiner.on_reject = lambda reason, message: self.get_logger().warning(message)

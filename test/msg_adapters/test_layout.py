@@ -8,7 +8,7 @@ import pytest
 from linear_slam_ros.errors import GraphError, InvalidMapError, MessageError
 from linear_slam_ros.joining import join_divide_and_conquer
 from linear_slam_ros.pose_graph import PoseGraphChunk
-from linear_slam_ros.synthetic import exact_local_maps, make_world, noisy_local_maps
+from linear_slam_ros.synthetic import make_world, noisy_local_maps
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
 from msg_adapters.ros import parts, to_msg

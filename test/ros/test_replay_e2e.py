@@ -17,7 +17,6 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from ros_support import LATCHED, REPO, wait_for_global_map
-from linear_slam_ros.datasets import read_dataset
 from linear_slam_ros.objective import chi2
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import read_messages
@@ -25,7 +24,7 @@ from linear_slam_ros.ros.player import play
 from linear_slam_ros.runner import run_join
 from linear_slam_ros.synthetic import make_world, noisy_local_maps
 from msg_adapters import decode_map, encode_map
-from msg_adapters.ros import parts, to_msg
+from msg_adapters.ros import to_msg
 
 DATASETS = REPO.parent / "shared" / "datasets"
 CASES = [

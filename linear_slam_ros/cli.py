@@ -70,19 +70,47 @@ def report_for(run: JoinRun, dataset: Dataset, chi2_value: float) -> dict[str, o
 
 def cmd_join(args: argparse.Namespace) -> int:
     """Join a dataset and write poses, features and report.json."""
+    return _join_command(args, refine_too=False)
+
+
+def cmd_refine(args: argparse.Namespace) -> int:
+    """Join, then refine by Gauss-Newton (Nonlinear LS), and write the refined result."""
+    return _join_command(args, refine_too=True)
+
+
+def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     dataset = read_dataset(args.dataset, kind=args.kind)
     if args.map_type == "feature-only":
-        return _join_feature_only(args, dataset, refine_too=False)
+        return _join_feature_only(args, dataset, refine_too)
     method = JoinMethod(args.method)
     run = join_dataset(dataset, method)
     origin = dataset.maps[0].frame_id
-    in_origin = write_result(args.out, run.result, origin)
-    report = report_for(run, dataset, chi2(in_origin, dataset.maps))
-    _write_report(args.out, report)
-    logger.info(
-        "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
-        run.seconds, report["chi2"],
+    if not refine_too:
+        in_origin = write_result(args.out, run.result, origin)
+        report = report_for(run, dataset, chi2(in_origin, dataset.maps))
+        _write_report(args.out, report)
+        logger.info(
+            "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
+            run.seconds, report["chi2"],
+        )
+        return 0
+    t0 = time.perf_counter()
+    refined = refine(run.result, dataset.maps)
+    seconds_refine = time.perf_counter() - t0
+    write_result(args.out, refined.map, origin)
+    report = report_for(run, dataset, refined.chi2)
+    report.update(
+        {
+            "linear_chi2": refined.chi2_history[0],
+            "refine_seconds": seconds_refine,
+            "refine_iterations": refined.iterations,
+            "refine_converged": refined.converged,
+            "info_nnz": refined.map.info_nnz(),
+            "state_dim": refined.map.state_dim,
+        }
     )
+    _write_report(args.out, report)
+    logger.info("%s: Nonlinear LS chi2 %.3f after %d iterations", dataset.name, refined.chi2, refined.iterations)
     return 0
 
 
@@ -136,34 +164,6 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
     _write_report(args.out, report)
     logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
                 dataset.name, args.method, len(dataset.maps), len(feature_maps), seconds, report["chi2"])
-    return 0
-
-
-def cmd_refine(args: argparse.Namespace) -> int:
-    """Join, then refine by Gauss-Newton (Nonlinear LS), and write the refined result."""
-    dataset = read_dataset(args.dataset, kind=args.kind)
-    if args.map_type == "feature-only":
-        return _join_feature_only(args, dataset, refine_too=True)
-    method = JoinMethod(args.method)
-    run = join_dataset(dataset, method)
-    origin = dataset.maps[0].frame_id
-    t0 = time.perf_counter()
-    refined = refine(run.result, dataset.maps)
-    seconds_refine = time.perf_counter() - t0
-    write_result(args.out, refined.map, origin)
-    report = report_for(run, dataset, refined.chi2)
-    report.update(
-        {
-            "linear_chi2": refined.chi2_history[0],
-            "refine_seconds": seconds_refine,
-            "refine_iterations": refined.iterations,
-            "refine_converged": refined.converged,
-            "info_nnz": refined.map.info_nnz(),
-            "state_dim": refined.map.state_dim,
-        }
-    )
-    _write_report(args.out, report)
-    logger.info("%s: Nonlinear LS chi2 %.3f after %d iterations", dataset.name, refined.chi2, refined.iterations)
     return 0
 
 

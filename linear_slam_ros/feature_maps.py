@@ -27,6 +27,7 @@ from linear_slam_ros.frames import change_frame
 from linear_slam_ros.geometry import drot2, rot2
 from linear_slam_ros.joining import join_pair, solve_union
 from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
+from linear_slam_ros.solvers import DENSE_MAX
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +271,7 @@ def change_feature_frame(fmap: FeatureMap, new_frame_ids: Sequence[int]) -> Feat
     g = (expansion_matrix(d, n).T @ jac_old_order @ expansion_matrix(d, n)).tocsr()
     info_old = sp.csr_matrix(fmap.info) if sp.issparse(fmap.info) else np.asarray(fmap.info)
     info = g.T @ info_old @ g
-    info = info.toarray() if sp.issparse(info) and info.shape[0] <= 250 else info
+    info = info.toarray() if sp.issparse(info) and info.shape[0] <= DENSE_MAX else info
     if not sp.issparse(info):
         info = 0.5 * (np.asarray(info) + np.asarray(info).T)
     return FeatureMap(d, new_frame_ids, ids_new[k:], x_new, info, fmap.name)

@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+import scipy.sparse as sp
+
 from linear_slam_ros.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
 from linear_slam_ros.errors import LinearSlamError
 from linear_slam_ros.frames import change_frame
@@ -132,8 +134,6 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
     joined = joiner(feature_maps, on_join=steps.append)
     seconds = time.perf_counter() - t0
     residual, _ = fm.feature_residuals(joined, joined.x, feature_maps, jacobian=False)
-    import scipy.sparse as sp
-
     weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
     report: dict[str, object] = {
         "dataset": dataset.name,

@@ -18,7 +18,7 @@ import scipy.sparse as sp
 
 from linear_slam_ros.errors import FrameError
 from linear_slam_ros.geometry import angles3, dangles3, drot3, pose_size, rot3, single_rotation, wrap_angle
-from linear_slam_ros.local_map import POSE, InfoMatrix, LocalMap, pose_key, var_sizes
+from linear_slam_ros.local_map import POSE, InfoMatrix, LocalMap, pose_key, var_offsets, var_sizes
 
 DENSE_MATMUL_MAX = 64
 """Up to this size ``G^T I G`` is two dense BLAS products; above, ``G`` is used as sparse."""
@@ -54,9 +54,7 @@ def frame_layout(dim: int, kinds: npt.NDArray[np.int8], slot: int, offsets: IntA
     d = dim
     p = pose_size(dim)
     if offsets is None:
-        sizes = var_sizes(dim, kinds)
-        offsets = np.zeros(sizes.size, dtype=np.int64)
-        np.cumsum(sizes[:-1], out=offsets[1:])
+        offsets = var_offsets(var_sizes(dim, kinds))
     keep = np.ones(kinds.shape, dtype=bool)
     keep[slot] = False
     pos_idx = offsets[keep][:, None] + np.arange(d)

@@ -22,7 +22,7 @@ import scipy.sparse as sp
 from linear_slam_ros.errors import FrameError, InvalidMapError
 from linear_slam_ros.frames import change_frame
 from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.local_map import LocalMap, is_sparse, to_csr, to_dense
+from linear_slam_ros.local_map import LocalMap, scalar_indices, to_csr, to_dense, var_offsets
 from linear_slam_ros.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
 
 logger = logging.getLogger(__name__)
@@ -31,14 +31,6 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 GLOBAL_NAME = "global"
-
-
-def scalar_indices(offsets: IntArray, sizes: IntArray, var_indices: IntArray) -> IntArray:
-    """Return the state indices of variables ``var_indices`` given per-variable offsets and sizes."""
-    s = sizes[var_indices]
-    starts = np.repeat(offsets[var_indices], s)
-    within = np.arange(int(s.sum())) - np.repeat(np.cumsum(s) - s, s)
-    return starts + within
 
 
 def align_frames(map_a: LocalMap, map_b: LocalMap) -> tuple[LocalMap, LocalMap]:
@@ -89,7 +81,7 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
     ids = np.concatenate([map_a.ids, map_b.ids[new]])
     kinds = np.concatenate([map_a.kinds, map_b.kinds[new]])
     sizes = np.concatenate([map_a.sizes, map_b.sizes[new]])
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    offsets = var_offsets(sizes)
     b_to_union = scalar_indices(offsets, sizes, union_of_b)
     n_a = map_a.state_dim
     n = int(sizes.sum())
@@ -305,8 +297,3 @@ def join_online_dc(maps: Iterable[LocalMap]) -> LocalMap:
 def express_in(local_map: LocalMap, pose_id: int) -> LocalMap:
     """Return the map in the frame of pose ``pose_id`` (e.g. the first pose, for output)."""
     return change_frame(local_map, pose_id)
-
-
-def is_dense(local_map: LocalMap) -> bool:
-    """Return whether the map's information is stored densely."""
-    return not is_sparse(local_map.info)

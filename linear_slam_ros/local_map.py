@@ -55,21 +55,32 @@ def var_sizes(dim: int, kinds: npt.ArrayLike) -> IntArray:
     return np.where(k == POSE, pose_size(dim), point_size(dim)).astype(np.int64)
 
 
+def var_offsets(sizes: IntArray) -> IntArray:
+    """Return each variable's first state index, given the variables' sizes."""
+    offsets = np.zeros(sizes.size, dtype=np.int64)
+    np.cumsum(sizes[:-1], out=offsets[1:])
+    return offsets
+
+
+def scalar_indices(offsets: IntArray, sizes: IntArray, var_indices: npt.ArrayLike) -> IntArray:
+    """Return the state indices of variables ``var_indices`` given per-variable offsets and sizes."""
+    vi = np.asarray(var_indices, dtype=np.int64)
+    s = sizes[vi]
+    starts = np.repeat(offsets[vi], s)
+    within = np.arange(int(s.sum())) - np.repeat(np.cumsum(s) - s, s)
+    return starts + within
+
+
 def angle_mask(dim: int, kinds: npt.ArrayLike) -> npt.NDArray[np.bool_]:
     """Return a boolean mask over the state vector marking the angle scalars of poses."""
     k = np.asarray(kinds)
     sizes = var_sizes(dim, k)
-    offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    offsets = var_offsets(sizes)
     mask = np.zeros(int(sizes.sum()), dtype=bool)
     starts = offsets[k == POSE] + dim
     for j in range(angle_size(dim)):
         mask[starts + j] = True
     return mask
-
-
-def is_sparse(matrix: InfoMatrix) -> bool:
-    """Return whether an information matrix is stored as a scipy sparse matrix."""
-    return sp.issparse(matrix)
 
 
 def to_dense(matrix: InfoMatrix) -> FloatArray:
@@ -104,7 +115,7 @@ class VariableLayout:
     @functools.cached_property
     def offsets(self) -> IntArray:
         """``(m,)`` index of each variable's first scalar in :attr:`x`."""
-        return np.concatenate([[0], np.cumsum(self.sizes)[:-1]]).astype(np.int64)
+        return var_offsets(self.sizes)
 
     @functools.cached_property
     def position_index(self) -> IntArray:
@@ -163,11 +174,7 @@ class VariableLayout:
         """Return the state indices of the given variables (all, in order, when ``None``)."""
         if var_indices is None:
             return np.arange(self.state_dim, dtype=np.int64)
-        vi = np.asarray(var_indices, dtype=np.int64)
-        sizes = self.sizes[vi]
-        starts = np.repeat(self.offsets[vi], sizes)
-        within = np.arange(int(sizes.sum())) - np.repeat(np.cumsum(sizes) - sizes, sizes)
-        return starts + within
+        return scalar_indices(self.offsets, self.sizes, var_indices)
 
     @functools.cached_property
     def angles(self) -> npt.NDArray[np.bool_]:
@@ -295,10 +302,6 @@ class LocalMap(VariableLayout):
         """Return the information matrix as a dense array."""
         return to_dense(self.info)
 
-    def info_csr(self) -> sp.csr_matrix:
-        """Return the information matrix as CSR."""
-        return to_csr(self.info)
-
     def info_nnz(self) -> int:
         """Return the number of stored non-zeros of the information matrix (dense: exact count)."""
         if sp.issparse(self.info):
@@ -366,11 +369,11 @@ def fuse_repeated(
     rank[order] = np.arange(order.size)
     target = rank[inverse]  # fused variable index of each raw variable
     sizes = np.where(kinds == POSE, pose_size(dim), dim)
-    raw_off = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    raw_off = var_offsets(sizes)
     fused_kinds = kinds[first[order]]
     fused_ids = var_ids[first[order]]
     fused_sizes = np.where(fused_kinds == POSE, pose_size(dim), dim)
-    fused_off = np.concatenate([[0], np.cumsum(fused_sizes)[:-1]])
+    fused_off = var_offsets(fused_sizes)
     n_raw, n_f = int(sizes.sum()), int(fused_sizes.sum())
     sel = np.zeros((n_raw, n_f))
     z = values.copy()

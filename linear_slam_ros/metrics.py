@@ -16,7 +16,7 @@ import scipy.stats
 
 from linear_slam_ros.errors import FrameError, InvalidMapError
 from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense, var_keys
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -129,4 +129,4 @@ def latency_summary(seconds: Sequence[float]) -> dict[str, float]:
     }
 
 
-__all__ = ["rmse", "nees", "NeesResult", "latency_summary", "positions", "var_keys"]
+__all__ = ["rmse", "nees", "NeesResult", "latency_summary", "positions"]

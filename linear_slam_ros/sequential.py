@@ -33,7 +33,7 @@ import scipy.linalg.blas
 from linear_slam_ros.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.frames import change_frame, frame_layout, reframe, reframe_jacobian
 from linear_slam_ros.geometry import angle_size, pose_size, wrap_angle
-from linear_slam_ros.local_map import POSE, LocalMap, VariableLayout, pose_key, to_dense
+from linear_slam_ros.local_map import POSE, LocalMap, VariableLayout, pose_key, to_dense, var_offsets
 
 logger = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class CovarianceMap(VariableLayout):
         sizes = self.sizes[var_indices]
         r = int(sizes.sum())
         q = np.zeros((r, r))
-        starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        starts = var_offsets(sizes)
         pos = starts[:, None] + np.arange(d)
         q[pos[:, :, None], pos[:, None, :]] = self.rot
         is_pose = self.kinds[var_indices] == POSE

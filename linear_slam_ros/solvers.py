@@ -45,11 +45,6 @@ DENSE_MAX = 120
 Manhattan and VicPark6898 between 80 and 250)."""
 
 
-def has_cholmod() -> bool:
-    """Return whether a CHOLMOD backend (``scikit-sparse`` or ``cholespy``) is available."""
-    return _cholmod_cholesky is not None or _cholespy is not None
-
-
 def backend_name() -> str:
     """Return the sparse backend ``auto`` uses."""
     if _cholmod_cholesky is not None:

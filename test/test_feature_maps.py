@@ -76,6 +76,20 @@ def test_noise_free_maps_give_the_truth(dim, joiner):
 
 
 @pytest.mark.parametrize("dim", [2, 3])
+def test_maps_join_in_the_frame_of_the_longest_baseline_common_features(dim):
+    world = make_world(dim, 12, 30, np.random.default_rng(5))
+    locals_ = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=6, sensor_range=9)
+    a, b = fm.to_feature_only(locals_[0]), fm.to_feature_only(locals_[1])
+    common = fm.common_features(a, b)
+    b_frame = tuple(common[-fm.n_frame_features(dim):])
+    b = fm.change_feature_frame(b, b_frame)  # b's own frame is common: the join must not keep it
+    longest = fm.choose_frame_features(dim, a.positions(), common)
+    assert longest != b_frame
+    joined = fm.join_feature_maps(a, b)
+    assert joined.frame_ids == longest
+
+
+@pytest.mark.parametrize("dim", [2, 3])
 def test_lemma_1_for_feature_only_maps(dim):
     """Joining two feature-only maps by Gauss-Newton in a new frame equals linear LS + transform."""
     world = make_world(dim, 12, 30, np.random.default_rng(5))
@@ -96,6 +110,7 @@ def test_lemma_1_for_feature_only_maps(dim):
 
 @pytest.mark.parametrize("name, method, bound", [
     ("VicPark_200_local_maps", "sequential", 0.20),
+    ("VicPark_200_local_maps", "dc", 0.20),
     ("DLR_200_local_maps", "sequential", 0.40),
     ("DLR_200_local_maps", "dc", 0.40),
 ])

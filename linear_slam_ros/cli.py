@@ -17,6 +17,7 @@ import scipy.sparse as sp
 
 from linear_slam_ros.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
 from linear_slam_ros.errors import LinearSlamError
+from linear_slam_ros.feature_maps import FeatureMap
 from linear_slam_ros.frames import change_frame
 from linear_slam_ros.local_map import FEATURE, LocalMap
 from linear_slam_ros.metrics import latency_summary
@@ -44,6 +45,14 @@ def write_result(out_dir: Path, joined: LocalMap, origin_id: int) -> LocalMap:
     if (in_origin.kinds == FEATURE).any():
         write_features(out_dir / "features.txt", in_origin)
     return in_origin
+
+
+def write_feature_result(out_dir: Path, feature_map: FeatureMap) -> None:
+    """Write ``features.txt`` (``id x y [z]`` per feature) in a feature-only map's frame."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with open(out_dir / "features.txt", "w") as fh:
+        for fid, pos in sorted(feature_map.positions().items()):
+            fh.write(f"{fid} " + " ".join(f"{v:.17g}" for v in pos) + "\n")
 
 
 def join_dataset(dataset: Dataset, method: JoinMethod) -> JoinRun:
@@ -123,16 +132,27 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
     if not dataset.kind.has_features:
         logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
         return 2
-    if args.method == JoinMethod.ONLINE_DC.value:
-        logger.error("feature-only joining supports --method sequential or dc")
-        return 2
     steps: list[float] = []
     t0 = time.perf_counter()
-    groups = fm.precondition(dataset.maps)
-    feature_maps = [fm.to_feature_only(g) for g in groups]
-    joiner = fm.join_features_sequential if args.method == "sequential" else fm.join_features_dc
-    joined = joiner(feature_maps, on_join=steps.append)
-    seconds = time.perf_counter() - t0
+    if args.method == JoinMethod.ONLINE_DC.value:
+        from linear_slam_ros.feature_online import FeatureJoinState, feature_result, feature_step
+
+        state = FeatureJoinState(JoinMethod.ONLINE_DC)
+        for m in dataset.maps:
+            t_step = time.perf_counter()
+            state = feature_step(state, m)
+            steps.append(time.perf_counter() - t_step)
+        joined = feature_result(state)
+        assert joined is not None
+        seconds = time.perf_counter() - t0
+        groups = fm.precondition(dataset.maps)  # for the objective (not timed)
+        feature_maps = [fm.to_feature_only(g) for g in groups]
+    else:
+        groups = fm.precondition(dataset.maps)
+        feature_maps = [fm.to_feature_only(g) for g in groups]
+        joiner = fm.join_features_sequential if args.method == "sequential" else fm.join_features_dc
+        joined = joiner(feature_maps, on_join=steps.append)
+        seconds = time.perf_counter() - t0
     residual, _ = fm.feature_residuals(joined, joined.x, feature_maps, jacobian=False)
     weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
     report: dict[str, object] = {
@@ -145,7 +165,7 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
         "state_dim": joined.state_dim,
         "seconds": seconds,
         **latency_summary(steps),
-        "latency_unit": "per pairwise join",
+        "latency_unit": "per submap" if args.method == JoinMethod.ONLINE_DC.value else "per pairwise join",
         "peak_rss_mb": peak_rss_mb(),
         "chi2": float(residual @ (weight @ residual)),
         "info_nnz": int(sp.csr_matrix(joined.info).count_nonzero()),
@@ -157,10 +177,7 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
         report.update({"linear_chi2": report["chi2"], "chi2": refined.chi2, "refine_iterations": refined.iterations,
                        "rmse_feature_linear_vs_nls": fm.feature_rmse(joined, refined.map)})
         out_map = refined.map
-    args.out.mkdir(parents=True, exist_ok=True)
-    with open(args.out / "features.txt", "w") as fh:
-        for fid, pos in sorted(out_map.positions().items()):
-            fh.write(f"{fid} " + " ".join(f"{v:.17g}" for v in pos) + "\n")
+    write_feature_result(args.out, out_map)
     _write_report(args.out, report)
     logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
                 dataset.name, args.method, len(dataset.maps), len(feature_maps), seconds, report["chi2"])

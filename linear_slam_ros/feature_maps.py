@@ -448,17 +448,49 @@ def precondition(maps: Sequence[LocalMap]) -> list[LocalMap]:
     SLAM), and the merged group is returned in the frame of its start pose.
     """
     groups: list[LocalMap] = []
-    current = maps[0]
-    start = maps[0].frame_id
-    for m in maps[1:]:
-        shared = np.intersect1d(current.feature_ids, m.feature_ids)
-        if _frame_possible(m.dim, current, shared):
-            groups.append(current if current.frame_id == start else change_frame(current, start))
-            current, start = m, m.frame_id
-        else:
-            current = join_pair(current, m, name=f"{maps[0].name}+")
-    groups.append(current if current.frame_id == start else change_frame(current, start))
+    current: Group | None = None
+    for m in maps:
+        closed, current = precondition_step(current, m)
+        if closed is not None:
+            groups.append(closed)
+    if current is not None:
+        groups.append(current.closed())
     return groups
+
+
+@dataclass(frozen=True)
+class Group:
+    """Consecutive pose-feature maps being merged until the next one shares a feature frame.
+
+    Attributes:
+        merged: the maps joined so far (in the frame of the newest end pose).
+        start_id: the first map's frame pose: the group is reported in its frame.
+    """
+
+    merged: LocalMap
+    start_id: int
+
+    def closed(self) -> LocalMap:
+        """Return the group in the frame of its start pose."""
+        return self.merged if self.merged.frame_id == self.start_id else change_frame(self.merged, self.start_id)
+
+
+def precondition_step(group: Group | None, submap: LocalMap) -> tuple[LocalMap | None, Group]:
+    """Take the next pose-feature map: close the group if the map shares a frame with it, else merge.
+
+    Returns:
+        ``(closed group or None, the open group)``.
+
+    Raises:
+        LinearSlamError: the map cannot be merged into the group (e.g. not consecutive).
+    """
+    if group is None:
+        return None, Group(submap, submap.frame_id)
+    shared = np.intersect1d(group.merged.feature_ids, submap.feature_ids)
+    if _frame_possible(submap.dim, group.merged, shared):
+        return group.closed(), Group(submap, submap.frame_id)
+    name = group.merged.name.rstrip("+") + "+"
+    return None, Group(join_pair(group.merged, submap, name=name), group.start_id)
 
 
 def _frame_possible(dim: int, local_map: LocalMap, shared: IntArray) -> bool:

@@ -15,11 +15,13 @@ from typing import Callable
 
 import numpy as np
 
-from linear_slam_ros.errors import LinearSlamError
+from linear_slam_ros.errors import InvalidMapError, LinearSlamError
+from linear_slam_ros.feature_maps import FeatureMap
+from linear_slam_ros.feature_online import FeatureJoinState, feature_result, feature_step
 from linear_slam_ros.frames import change_frame
 from linear_slam_ros.joining import OnlineDCState, online_dc_result, online_dc_step
 from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.runner import JoinMethod
+from linear_slam_ros.runner import JoinMethod, MapType
 from linear_slam_ros.sequential import SequentialState, sequential_step
 
 logger = logging.getLogger(__name__)
@@ -35,6 +37,8 @@ class JoinerState:
         mode: ``sequential`` or ``online-dc``.
         sequential: state of exact sequential joining (mode ``sequential``).
         online: state of online divide and conquer (mode ``online-dc``).
+        map_type: ``as-is``, or ``feature-only`` (then only ``features`` is used).
+        features: state of feature-only joining (``map_type`` ``feature-only``).
         first_pose_id: frame pose of the first joined submap (``map_frame`` of the outputs).
         n_joined: submaps joined.
         next_seq: sequence number expected next (``None`` before the first submap).
@@ -44,6 +48,8 @@ class JoinerState:
     mode: JoinMethod
     sequential: SequentialState = SequentialState()
     online: OnlineDCState = OnlineDCState()
+    map_type: MapType = MapType.AS_IS
+    features: FeatureJoinState | None = None
     first_pose_id: int | None = None
     n_joined: int = 0
     next_seq: int | None = None
@@ -56,7 +62,9 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
     Raises:
         LinearSlamError: the submap cannot be joined (the state is unchanged).
     """
-    if state.mode is JoinMethod.SEQUENTIAL:
+    if state.map_type is MapType.FEATURE_ONLY:
+        new = replace(state, features=feature_step(state.features or FeatureJoinState(state.mode), submap))
+    elif state.mode is JoinMethod.SEQUENTIAL:
         new = replace(state, sequential=sequential_step(state.sequential, submap))
     else:
         new = replace(state, online=online_dc_step(state.online, submap))
@@ -64,8 +72,20 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
     return replace(new, first_pose_id=first, n_joined=state.n_joined + 1, next_seq=seq + 1, last_seq=seq)
 
 
+def new_state(mode: JoinMethod, map_type: MapType = MapType.AS_IS) -> JoinerState:
+    """Return the empty state of a joiner."""
+    features = FeatureJoinState(mode) if map_type is MapType.FEATURE_ONLY else None
+    return JoinerState(mode, map_type=map_type, features=features)
+
+
 def global_map_of(state: JoinerState, output_frame: str = "end_pose") -> LocalMap | None:
-    """Return the global map in the robocentric end-pose frame or the first pose's frame."""
+    """Return the global map in the robocentric end-pose frame or the first pose's frame.
+
+    Raises:
+        InvalidMapError: the state is feature-only (see :func:`global_feature_map_of`).
+    """
+    if state.map_type is MapType.FEATURE_ONLY:
+        raise InvalidMapError("a feature-only joiner has no pose frame: use global_feature_map_of")
     if state.n_joined == 0:
         return None
     if state.mode is JoinMethod.SEQUENTIAL:
@@ -78,6 +98,13 @@ def global_map_of(state: JoinerState, output_frame: str = "end_pose") -> LocalMa
     return joined
 
 
+def global_feature_map_of(state: JoinerState) -> FeatureMap | None:
+    """Return the feature-only global map (in the frame of its longest-baseline features)."""
+    if state.features is None:
+        raise InvalidMapError(f"a joiner with map_type {state.map_type.value!r} has no feature-only map")
+    return feature_result(state.features)
+
+
 @dataclass
 class Joiner:
     """Sequencing and bookkeeping around :func:`join_step` (mutable; owned by one thread).
@@ -88,6 +115,7 @@ class Joiner:
 
     Attributes:
         mode: joining method.
+        map_type: ``as-is`` or ``feature-only``.
         reorder_window: how many early submaps may wait for a missing one.
         state: the current state (replace it to restore a saved one).
         rejected: count of rejected submaps by reason.
@@ -95,6 +123,7 @@ class Joiner:
     """
 
     mode: JoinMethod
+    map_type: MapType = MapType.AS_IS
     reorder_window: int = 100
     state: JoinerState = field(init=False)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
@@ -103,11 +132,11 @@ class Joiner:
     _pending: dict[int, LocalMap] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.state = JoinerState(JoinMethod(self.mode))
+        self.state = new_state(JoinMethod(self.mode), MapType(self.map_type))
 
     def reset(self) -> None:
         """Forget every submap, count and buffered message."""
-        self.state = JoinerState(self.state.mode)
+        self.state = new_state(self.state.mode, self.state.map_type)
         self.rejected.clear()
         self.join_seconds.clear()
         self._pending.clear()

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -257,23 +257,41 @@ def online_dc_step(state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
     Raises:
         FrameError: the submap neither is in nor holds the end pose of the newest stack entry.
     """
-    stack = list(state.stack)
-    counts = list(state.counts)
-    if stack:
-        seam = stack[-1].end_id
+    if state.stack:
+        seam = state.stack[-1].end_id
         if seam is not None and submap.frame_id != seam and not submap.has_pose(seam):
             raise FrameError(
                 f"submap {submap.name!r} is in the frame of pose {submap.frame_id} and does not hold pose {seam}, "
                 "the end pose of the global map"
             )
-    stack.append(submap)
-    counts.append(1)
-    while len(counts) >= 2 and counts[-1] == counts[-2]:
-        right, left = stack.pop(), stack.pop()
-        c = counts.pop() + counts.pop()
-        stack.append(join_at_seam(left, right))
-        counts.append(c)
-    return OnlineDCState(tuple(stack), tuple(counts), state.n_joined + 1)
+    new_stack, new_counts = counter_push(state.stack, state.counts, submap, join_at_seam)
+    return OnlineDCState(new_stack, new_counts, state.n_joined + 1)
+
+
+T = TypeVar("T")
+
+
+def counter_push(
+    stack: Sequence[T], counts: Sequence[int], item: T, join: Callable[[T, T], T]
+) -> tuple[tuple[T, ...], tuple[int, ...]]:
+    """Push ``item`` on a binary-counter stack and merge equal-sized neighbours with ``join``.
+
+    Args:
+        stack: joined entries, oldest first.
+        counts: number of items in each entry (powers of two, strictly decreasing).
+        item: the new item (count 1).
+        join: ``join(older, newer)``.
+
+    Returns:
+        The new stack and counts.
+    """
+    stack_l, counts_l = list(stack) + [item], list(counts) + [1]
+    while len(counts_l) >= 2 and counts_l[-1] == counts_l[-2]:
+        right, left = stack_l.pop(), stack_l.pop()
+        c = counts_l.pop() + counts_l.pop()
+        stack_l.append(join(left, right))
+        counts_l.append(c)
+    return tuple(stack_l), tuple(counts_l)
 
 
 def online_dc_result(state: OnlineDCState) -> LocalMap:

@@ -26,6 +26,15 @@ class JoinMethod(str, enum.Enum):
     """Divide and conquer as submaps arrive: a binary-counter stack, merged for output."""
 
 
+class MapType(str, enum.Enum):
+    """What the joiner keeps of pose-feature submaps (the node's ``map_type``)."""
+
+    AS_IS = "as-is"
+    """Join the submaps' variables as they are (pose-feature, pose-only or feature-only)."""
+    FEATURE_ONLY = "feature-only"
+    """Marginalise the poses and join feature-only maps in feature-defined frames (Sec. 7)."""
+
+
 @dataclass(frozen=True)
 class JoinRun:
     """A timed joining run.

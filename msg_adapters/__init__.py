@@ -12,11 +12,14 @@ from msg_adapters.layout import (
     MAP_KIND_POSE_GRAPH,
     ChunkMessage,
     Encoded,
+    FeatureMapMessage,
     MapMessage,
     Stamp,
     decode_chunk,
+    decode_feature_map,
     decode_map,
     encode_chunk,
+    encode_feature_map,
     encode_map,
 )
 
@@ -27,10 +30,13 @@ __all__ = [
     "MAP_KIND_POSE_GRAPH",
     "ChunkMessage",
     "Encoded",
+    "FeatureMapMessage",
     "MapMessage",
     "Stamp",
     "decode_chunk",
+    "decode_feature_map",
     "decode_map",
     "encode_chunk",
+    "encode_feature_map",
     "encode_map",
 ]

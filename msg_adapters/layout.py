@@ -21,6 +21,15 @@ Local map and global map (``MAP_KIND_*``)::
     stats       (global map only) [n_joined, n_rejected, last_join_ms, join_ms_p50,
                  join_ms_p99, join_ms_max, join_seconds_total]
 
+Feature-only map (the global map of ``map_type: feature-only``): the same segments, with
+``frame_pose_id = end_pose_id = -1``, every variable a feature, and one more segment::
+
+    frame_features  the ids of F_O, F_X (2D) or F_O, F_X, F_Y (3D): the features that define
+                    the frame (F_O at the origin, F_X on the +x axis, F_Y in the x-y plane with
+                    y > 0); they are not in var_ids
+    state           first the frame features' free coordinates (2D: x of F_X; 3D: x of F_X,
+                    x y of F_Y), then x y [z] of each feature in var_ids; metres
+
 Pose-graph chunk (the relative-pose constraints of one submap)::
 
     header      [version=1, dim, MAP_KIND_POSE_GRAPH, seq, stamp_sec, stamp_nanosec, n_edges]
@@ -40,6 +49,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.errors import InvalidMapError, MessageError
+from linear_slam_ros.feature_maps import FeatureMap
 from linear_slam_ros.geometry import pose_size
 from linear_slam_ros.local_map import LocalMap
 from linear_slam_ros.pose_graph import PoseGraphChunk
@@ -92,6 +102,18 @@ class MapMessage:
 
 
 @dataclass(frozen=True)
+class FeatureMapMessage:
+    """A decoded feature-only map message."""
+
+    feature_map: FeatureMap
+    seq: int
+    stamp: Stamp
+    map_kind: int
+    n_submaps: int
+    stats: dict[str, float] | None = None
+
+
+@dataclass(frozen=True)
 class ChunkMessage:
     """A decoded pose-graph chunk message."""
 
@@ -113,16 +135,42 @@ def encode_map(
     stats: dict[str, float] | None = None,
 ) -> Encoded:
     """Encode a map into the documented layout (information as upper-triangle triplets)."""
-    upper = sp.triu(sp.coo_matrix(local_map.info), format="coo")
-    header = [
-        FORMAT_VERSION, local_map.dim, map_kind, seq, stamp.sec, stamp.nanosec, local_map.frame_id,
-        -1 if local_map.end_id is None else local_map.end_id, n_submaps,
-    ]
+    end = -1 if local_map.end_id is None else local_map.end_id
+    header = [FORMAT_VERSION, local_map.dim, map_kind, seq, stamp.sec, stamp.nanosec, local_map.frame_id, end, n_submaps]
+    return _encode_map_segments(header, local_map.ids, local_map.kinds, local_map.x, local_map.info, stats)
+
+
+def encode_feature_map(
+    feature_map: FeatureMap,
+    seq: int,
+    stamp: Stamp = Stamp(),
+    map_kind: int = MAP_KIND_GLOBAL,
+    n_submaps: int = 1,
+    stats: dict[str, float] | None = None,
+) -> Encoded:
+    """Encode a feature-only map (frame defined by features) into the documented layout."""
+    header = [FORMAT_VERSION, feature_map.dim, map_kind, seq, stamp.sec, stamp.nanosec, -1, -1, n_submaps]
+    kinds = np.ones(feature_map.ids.size)
+    extra = [("frame_features", np.array(feature_map.frame_ids))]
+    return _encode_map_segments(header, feature_map.ids, kinds, feature_map.x, feature_map.info, stats, extra)
+
+
+def _encode_map_segments(
+    header: Sequence[int],
+    ids: npt.ArrayLike,
+    kinds: npt.ArrayLike,
+    x: FloatArray,
+    info: FloatArray | sp.spmatrix,
+    stats: dict[str, float] | None,
+    extra: Sequence[tuple[str, npt.ArrayLike]] = (),
+) -> Encoded:
+    upper = sp.triu(sp.coo_matrix(info), format="coo")
     segments: list[tuple[str, npt.ArrayLike]] = [
         ("header", header),
-        ("var_ids", local_map.ids),
-        ("var_kinds", local_map.kinds),
-        ("state", local_map.x),
+        ("var_ids", ids),
+        ("var_kinds", kinds),
+        *extra,
+        ("state", x),
         ("info_rows", upper.row),
         ("info_cols", upper.col),
         ("info_vals", upper.data),
@@ -177,13 +225,25 @@ def _header(seg: dict[str, FloatArray], size: int, what: str) -> npt.NDArray[np.
     return h
 
 
-def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> MapMessage:
-    """Decode a local or global map message; validate the map.
+@dataclass(frozen=True)
+class _MapFields:
+    dim: int
+    map_kind: int
+    seq: int
+    stamp: Stamp
+    frame_pose_id: int
+    end_pose_id: int | None
+    n_submaps: int
+    ids: npt.NDArray[np.int64]
+    kinds: npt.NDArray[np.int64]
+    state: FloatArray
+    info: FloatArray | sp.csr_matrix
+    stats: dict[str, float] | None
+    segments: dict[str, FloatArray]
+    what: str
 
-    Raises:
-        MessageError: the layout does not follow the contract (names the segment).
-        InvalidMapError: the map itself is invalid (names the map and the fault).
-    """
+
+def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int) -> _MapFields:
     what = "map message"
     seg = _segments(labels, sizes, data, data_offset, MAP_SEGMENTS, what)
     h = _header(seg, _MAP_HEADER, what)
@@ -212,15 +272,49 @@ def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, da
     from linear_slam_ros.solvers import DENSE_MAX
 
     stored = info.toarray() if n <= DENSE_MAX else info
-    end = None if h[7] < 0 else int(h[7])
-    name = f"{'local' if map_kind == MAP_KIND_LOCAL else 'global'} map seq {seq}"
-    if np.any((kinds != 0) & (kinds != 1)):
-        raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {kinds[(kinds != 0) & (kinds != 1)][0]}")
-    local_map = LocalMap(dim, int(h[6]), end, ids, kinds.astype(np.int8), seg["state"].copy(), stored, name=name)
     stats = None
     if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
         stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"])}
-    return MapMessage(local_map, seq, Stamp(int(h[4]), int(h[5])), map_kind, int(h[8]), stats)
+    return _MapFields(
+        dim, map_kind, seq, Stamp(int(h[4]), int(h[5])), int(h[6]), None if h[7] < 0 else int(h[7]), int(h[8]),
+        ids, kinds, seg["state"].copy(), stored, stats, seg, what,
+    )
+
+
+def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> MapMessage:
+    """Decode a local or global map message; validate the map.
+
+    Raises:
+        MessageError: the layout does not follow the contract (names the segment), or the
+            message holds a feature-only map (decode it with :func:`decode_feature_map`).
+        InvalidMapError: the map itself is invalid (names the map and the fault).
+    """
+    f = _decode_map_fields(labels, sizes, data, data_offset)
+    if "frame_features" in f.segments:
+        raise MessageError(f"{f.what}: a feature-only map (segment 'frame_features'); decode it with decode_feature_map")
+    name = f"{'local' if f.map_kind == MAP_KIND_LOCAL else 'global'} map seq {f.seq}"
+    kinds = f.kinds
+    if np.any((kinds != 0) & (kinds != 1)):
+        raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {kinds[(kinds != 0) & (kinds != 1)][0]}")
+    local_map = LocalMap(f.dim, f.frame_pose_id, f.end_pose_id, f.ids, kinds.astype(np.int8), f.state, f.info, name=name)
+    return MapMessage(local_map, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
+
+
+def decode_feature_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> FeatureMapMessage:
+    """Decode a feature-only map message (with a ``frame_features`` segment); validate the map.
+
+    Raises:
+        MessageError: the layout does not follow the contract (names the segment).
+        InvalidMapError: the map itself is invalid (names the map and the fault).
+    """
+    f = _decode_map_fields(labels, sizes, data, data_offset)
+    if "frame_features" not in f.segments:
+        raise MessageError(f"{f.what}: no 'frame_features' segment: not a feature-only map (decode it with decode_map)")
+    frame = _ints(f.segments["frame_features"], "frame_features", f.what)
+    if np.any(f.kinds != 1):
+        raise InvalidMapError(f"feature-only map seq {f.seq}: every variable must be a feature (kind 1)")
+    fmap = FeatureMap(f.dim, tuple(int(i) for i in frame), f.ids, f.state, f.info, name=f"feature-only map seq {f.seq}")
+    return FeatureMapMessage(fmap, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
 
 
 def encode_chunk(chunk: PoseGraphChunk, stamp: Stamp = Stamp()) -> Encoded:

@@ -15,8 +15,9 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from linear_slam_ros.feature_maps import FeatureMap, expansion_matrix
 from linear_slam_ros.geometry import rotation
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -57,27 +58,34 @@ def current_pose_msg(global_map: LocalMap, end_id: int, frame_id: str, stamp: Ti
 def feature_markers(
     global_map: LocalMap, frame_id: str, stamp: Time, covariances: dict[int, FloatArray] | None = None
 ) -> MarkerArray:
+    """Return the features of a map (in the frame of its first pose) as markers: see :func:`point_markers`."""
+    feats = np.flatnonzero(global_map.kinds == FEATURE).tolist()
+    points = {int(global_map.ids[i]): global_map.x[global_map.scalar_slice(i)] for i in feats}
+    return point_markers(global_map.dim, points, frame_id, stamp, covariances)
+
+
+def point_markers(
+    dim: int, points: dict[int, FloatArray], frame_id: str, stamp: Time, covariances: dict[int, FloatArray] | None = None
+) -> MarkerArray:
     """Return the features as a point list plus, where given, one 2-sigma ellipse (ellipsoid) each.
 
     Args:
-        global_map: the map, in the frame of its first pose.
+        dim: 2 or 3.
+        points: ``{feature id: (d,) position}`` in the frame ``frame_id``.
         frame_id: ``map_frame``.
         stamp: header stamp.
         covariances: ``{feature id: (d, d) marginal covariance}``.
     """
     header = Header(stamp=stamp, frame_id=frame_id)
-    feats = np.flatnonzero(global_map.kinds == FEATURE)
-    d = global_map.dim
-    points = Marker(header=header, ns="features", id=0, type=Marker.SPHERE_LIST, action=Marker.ADD)
-    points.pose.orientation.w = 1.0
-    points.scale.x = points.scale.y = points.scale.z = 0.3
-    points.color = ColorRGBA(r=0.1, g=0.3, b=0.9, a=1.0)
-    for i in feats.tolist():
-        x = global_map.x[global_map.scalar_slice(i)]
-        points.points.append(Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0))
-    markers = [Marker(header=header, ns="features", action=Marker.DELETEALL), points]
-    for i in feats.tolist() if covariances else []:
-        fid = int(global_map.ids[i])
+    d = dim
+    markers_points = Marker(header=header, ns="features", id=0, type=Marker.SPHERE_LIST, action=Marker.ADD)
+    markers_points.pose.orientation.w = 1.0
+    markers_points.scale.x = markers_points.scale.y = markers_points.scale.z = 0.3
+    markers_points.color = ColorRGBA(r=0.1, g=0.3, b=0.9, a=1.0)
+    for x in points.values():
+        markers_points.points.append(Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0))
+    markers = [Marker(header=header, ns="features", action=Marker.DELETEALL), markers_points]
+    for fid, x in points.items() if covariances else []:
         cov = covariances.get(fid) if covariances else None
         if cov is None:
             continue
@@ -86,7 +94,6 @@ def feature_markers(
         if np.linalg.det(vectors) < 0:
             vectors[:, 0] = -vectors[:, 0]
         m = Marker(header=header, ns="covariance", id=fid, action=Marker.ADD)
-        x = global_map.x[global_map.scalar_slice(i)]
         m.pose.position = Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0)
         axes = 2.0 * ELLIPSE_SIGMA * np.sqrt(values)  # full axis lengths
         if d == 2:
@@ -115,3 +122,14 @@ def feature_covariances(global_map: LocalMap, max_state: int) -> dict[int, Float
         sl = global_map.scalar_slice(i)
         out[int(global_map.ids[i])] = cov[sl, sl]
     return out
+
+
+def feature_map_covariances(feature_map: FeatureMap, max_state: int) -> dict[int, FloatArray] | None:
+    """Return each feature's marginal covariance in a feature-only map's frame, or ``None`` above
+    ``max_state`` scalars (the frame features' fixed coordinates have zero variance)."""
+    if feature_map.state_dim > max_state:
+        return None
+    d = feature_map.dim
+    expand = expansion_matrix(d, feature_map.all_ids.size).toarray()
+    cov = expand @ np.linalg.inv(to_dense(feature_map.info)) @ expand.T
+    return {int(f): cov[k * d : (k + 1) * d, k * d : (k + 1) * d] for k, f in enumerate(feature_map.all_ids.tolist())}

@@ -111,6 +111,7 @@ def test_lemma_1_for_feature_only_maps(dim):
 @pytest.mark.parametrize("name, method, bound", [
     ("VicPark_200_local_maps", "sequential", 0.20),
     ("VicPark_200_local_maps", "dc", 0.20),
+    ("VicPark_200_local_maps", "online-dc", 0.20),
     ("DLR_200_local_maps", "sequential", 0.40),
     ("DLR_200_local_maps", "dc", 0.40),
 ])

@@ -25,16 +25,20 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from linear_slam_ros.cli import write_result
+from linear_slam_ros.cli import write_feature_result, write_result
 from linear_slam_ros.errors import LinearSlamError
+from linear_slam_ros.feature_maps import FeatureMap
 from linear_slam_ros.frames import change_frame
-from linear_slam_ros.joiner_core import OUTPUT_FRAMES, Joiner, JoinerState, global_map_of
+from linear_slam_ros.joiner_core import OUTPUT_FRAMES, Joiner, JoinerState, global_feature_map_of, global_map_of
+from linear_slam_ros.local_map import LocalMap
 from linear_slam_ros.pose_graph import chunk_to_local_map
-from linear_slam_ros.runner import JoinMethod
+from linear_slam_ros.runner import JoinMethod, MapType
 from linear_slam_ros.runtime import blas_threads_for, set_blas_threads, tune_allocator
-from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_map
+from msg_adapters import MAP_KIND_GLOBAL, Encoded, Stamp, decode_chunk, decode_map, encode_feature_map, encode_map
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import current_pose_msg, feature_covariances, feature_markers, path_msg
+from msg_adapters.views import (
+    current_pose_msg, feature_covariances, feature_map_covariances, feature_markers, path_msg, point_markers,
+)
 
 NODE_NAME = "joiner"
 PUBLISH_DUTY = 0.25
@@ -44,6 +48,8 @@ PUBLISH_DUTY = 0.25
 PARAMETERS: dict[str, tuple[Any, str, bool, tuple[float, float] | None]] = {
     "mode": ("sequential", "joining method: 'sequential' (exact, robocentric end-pose frame) or 'online-dc' "
              "(online divide and conquer, for long streams)", True, None),
+    "map_type": ("as-is", "'as-is' joins the submaps' variables; 'feature-only' marginalises the poses of "
+                 "pose-feature submaps and joins feature-only maps in feature-defined frames (D-SLAM)", True, None),
     "output_frame": ("end_pose", "frame of the global_map message: 'end_pose' (robocentric, newest end pose) "
                      "or 'first_pose'", False, None),
     "publish_rate": (2.0, "maximum rate of the output topics, Hz", False, (0.05, 100.0)),
@@ -77,6 +83,10 @@ class JoinerNode(Node):
         if mode not in (JoinMethod.SEQUENTIAL.value, JoinMethod.ONLINE_DC.value):
             self.get_logger().error(f"parameter mode={mode!r} is not 'sequential' or 'online-dc'; using 'sequential'")
             mode = JoinMethod.SEQUENTIAL.value
+        map_type = self.get_parameter("map_type").value
+        if map_type not in [t.value for t in MapType]:
+            self.get_logger().error(f"parameter map_type={map_type!r} is not 'as-is' or 'feature-only'; using 'as-is'")
+            map_type = MapType.AS_IS.value
         if self.get_parameter("output_frame").value not in OUTPUT_FRAMES:
             self.get_logger().error(f"parameter output_frame must be one of {OUTPUT_FRAMES}; using 'end_pose'")
             self.set_parameters([Parameter("output_frame", value="end_pose")])
@@ -84,7 +94,7 @@ class JoinerNode(Node):
         tune_allocator()
         set_blas_threads(blas_threads_for(mode))
 
-        self.joiner = Joiner(JoinMethod(mode), reorder_window=int(self.get_parameter("reorder_window").value))
+        self.joiner = Joiner(JoinMethod(mode), MapType(map_type), reorder_window=int(self.get_parameter("reorder_window").value))
         self.joiner.on_reject = lambda reason, message: self.get_logger().warning(message)
         self.n_received = 0
         self._version = 0  # bumped on every state change; the publisher compares it
@@ -117,7 +127,7 @@ class JoinerNode(Node):
         self._timer = self.create_timer(1.0 / float(self.get_parameter("publish_rate").value), self._on_publish_timer, callback_group=output_group)
         self.create_timer(float(self.get_parameter("summary_period").value), self._on_summary_timer, callback_group=output_group)
         self.get_logger().info(
-            f"joiner ready: mode={mode}, output_frame={self.get_parameter('output_frame').value}, "
+            f"joiner ready: mode={mode}, map_type={map_type}, output_frame={self.get_parameter('output_frame').value}, "
             f"map_frame={self.get_parameter('map_frame').value}, queue_depth={depth or 'keep all'}"
         )
 
@@ -181,14 +191,17 @@ class JoinerNode(Node):
             state = self.joiner.state
         folder = Path(str(self.get_parameter("save_directory").value))
         try:
-            joined = global_map_of(state, "first_pose")
+            joined = self._global(state, "first_pose")
             if joined is None:
                 response.success, response.message = False, "nothing to save: no submap joined yet"
                 return response
-            write_result(folder, joined, joined.frame_id)
+            if isinstance(joined, FeatureMap):
+                write_feature_result(folder, joined)
+            else:
+                write_result(folder, joined, joined.frame_id)
             from linear_slam_ros.ros.bagio import write_messages
 
-            encoded = encode_map(joined, state.n_joined, self._stamp(), MAP_KIND_GLOBAL, state.n_joined, self.joiner.stats())
+            encoded = self._encode(joined, state, self.joiner.stats())
             write_messages(folder / "global_map_bag", [("global_map", 0, encoded)], latched={"global_map"}, overwrite=True)
         except (LinearSlamError, OSError) as exc:
             response.success, response.message = False, f"save failed: {exc}"
@@ -219,19 +232,34 @@ class JoinerNode(Node):
         # PUBLISH_DUTY of the time, whatever publish_rate asks for.
         self._next_publish = now + (time.monotonic() - now) / PUBLISH_DUTY
 
+    @staticmethod
+    def _global(state: JoinerState, output_frame: str) -> LocalMap | FeatureMap | None:
+        """Return the global map (``None`` while there is none)."""
+        if state.map_type is MapType.FEATURE_ONLY:
+            return global_feature_map_of(state)
+        return global_map_of(state, output_frame)
+
+    def _encode(self, joined: LocalMap | FeatureMap, state: JoinerState, stats: dict[str, float]) -> Encoded:
+        args = (state.last_seq or 0, self._stamp(), MAP_KIND_GLOBAL, state.n_joined, stats)
+        return encode_feature_map(joined, *args) if isinstance(joined, FeatureMap) else encode_map(joined, *args)
+
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
-        output_frame = str(self.get_parameter("output_frame").value)
-        joined = global_map_of(state, output_frame)
-        assert joined is not None
-        stamp = self._stamp()
-        self.pub_global.publish(to_msg(encode_map(joined, state.last_seq or 0, stamp, MAP_KIND_GLOBAL, state.n_joined, stats)))
+        joined = self._global(state, str(self.get_parameter("output_frame").value))
+        if joined is None:  # feature-only: no group defines a feature frame yet
+            return
+        self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
+        ros_stamp = self.get_clock().now().to_msg()
+        map_frame = str(self.get_parameter("map_frame").value)
+        max_state = int(self.get_parameter("ellipse_max_state").value)
+        if isinstance(joined, FeatureMap):  # no poses: features only, in the feature frame
+            covs = feature_map_covariances(joined, max_state)
+            self.pub_markers.publish(point_markers(joined.dim, joined.positions(), map_frame, ros_stamp, covs))
+            return
         first = state.first_pose_id
         assert first is not None
         in_first = joined if joined.frame_id == first else change_frame(joined, first)
-        ros_stamp = self.get_clock().now().to_msg()
-        map_frame = str(self.get_parameter("map_frame").value)
         self.pub_path.publish(path_msg(in_first, map_frame, ros_stamp))
-        covs = feature_covariances(in_first, int(self.get_parameter("ellipse_max_state").value))
+        covs = feature_covariances(in_first, max_state)
         self.pub_markers.publish(feature_markers(in_first, map_frame, ros_stamp, covs))
         if joined.end_id is not None:
             self.pub_pose.publish(current_pose_msg(in_first, joined.end_id, map_frame, ros_stamp))

@@ -148,3 +148,49 @@ def test_chunk_message_errors():
         decode_chunk(*_mutate(enc, "edge_to", [1.0, 2.0]))
     with pytest.raises(GraphError, match="edge 0 connects pose 3 to itself"):
         decode_chunk(*_mutate(enc, "edge_to", [3.0, 4.0, 5.0]))
+
+
+def _feature_map(dim, rng):
+    from linear_slam_ros import feature_maps as fm
+
+    world = make_world(dim, 12, 20, rng)
+    return fm.join_features_sequential([fm.to_feature_only(g) for g in fm.precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_feature_only_map_round_trip_is_bit_exact(dim, rng):
+    from msg_adapters import decode_feature_map, encode_feature_map
+
+    fmap = _feature_map(dim, rng)
+    enc = encode_feature_map(fmap, 9, Stamp(3, 4), MAP_KIND_GLOBAL, 5, {"n_joined": 5.0})
+    assert "frame_features" in enc.labels
+    for back in (decode_feature_map(*parts(to_msg(enc))), decode_feature_map(*bag_parts(deserialize(serialize(enc))))):
+        m = back.feature_map
+        assert m.frame_ids == fmap.frame_ids and m.dim == dim
+        np.testing.assert_array_equal(m.ids, fmap.ids)
+        assert m.x.tobytes() == fmap.x.tobytes()
+        np.testing.assert_array_equal(np.asarray(m.info), np.asarray(fmap.info))
+        assert (back.seq, back.stamp, back.n_submaps, back.stats["n_joined"]) == (9, Stamp(3, 4), 5, 5.0)
+
+
+def test_feature_only_and_pose_frame_messages_are_not_confused(rng):
+    from msg_adapters import decode_feature_map, encode_feature_map
+
+    fmap = _feature_map(2, rng)
+    enc = encode_feature_map(fmap, 2)
+    with pytest.raises(MessageError, match="a feature-only map \\(segment 'frame_features'\\); decode it with decode_feature_map"):
+        decode_map(enc.labels, enc.sizes, enc.data)
+    plain = encode_map(_maps(2, rng)[0], 3)
+    with pytest.raises(MessageError, match="no 'frame_features' segment: not a feature-only map"):
+        decode_feature_map(plain.labels, plain.sizes, plain.data)
+    k = enc.labels.index("var_kinds")
+    start = sum(enc.sizes[:k])
+    data = enc.data.copy()
+    data[start] = 0.0  # a pose among the variables
+    with pytest.raises(InvalidMapError, match="every variable must be a feature"):
+        decode_feature_map(enc.labels, enc.sizes, data)
+    f = enc.labels.index("frame_features")
+    data = enc.data.copy()
+    data[sum(enc.sizes[:f]) + 1] = data[sum(enc.sizes[:f])]  # F_X == F_O
+    with pytest.raises(InvalidMapError, match="a 2D frame needs 2 distinct features"):
+        decode_feature_map(enc.labels, enc.sizes, data)

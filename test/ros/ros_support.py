@@ -65,8 +65,9 @@ class JoinerProcess:
         return int(self.process.returncode), out
 
 
-def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeout_s: float, joiner: JoinerProcess | None = None):
-    """Spin until a received global map satisfies ``done``; return (message, receive time)."""
+def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeout_s: float, joiner: JoinerProcess | None = None,
+                        decode: Callable[..., object] = decode_map):
+    """Spin until a received global map (decoded by ``decode``) satisfies ``done``; return (message, receive time)."""
     latest: dict[str, object] = {}
     sub = node.create_subscription(Float64MultiArray, topic, lambda m: latest.update(msg=m, t=time.monotonic()), LATCHED)
     deadline = time.monotonic() + timeout_s
@@ -74,7 +75,7 @@ def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeou
         while time.monotonic() < deadline:
             rclpy.spin_once(node, timeout_sec=0.05)
             if "msg" in latest:
-                decoded = decode_map(*parts(latest["msg"]))
+                decoded = decode(*parts(latest["msg"]))
                 if done(decoded):
                     return decoded, latest["t"]
             if joiner is not None and joiner.process.poll() is not None:

@@ -88,6 +88,36 @@ def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchma
     (out / f"{name}_{mode}.json").write_text(json.dumps(figures, indent=2) + "\n")
 
 
+def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benchmark):
+    """map_type feature-only: VicPark200's pose-feature bag becomes the feature-only global map."""
+    from linear_slam_ros import feature_maps as fm
+    from msg_adapters import decode_feature_map
+
+    name = "VicPark_200_local_maps"
+    maps = read_benchmark(name).maps
+    records = list(read_messages(_bag(name)))
+    joiner = start_joiner(mode="sequential", map_type="feature-only", publish_rate=10.0)
+    play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner,
+                                   decode=decode_feature_map)
+    code, output = joiner.stop()
+    assert code == 0, output[-2000:]
+    assert "map_type=feature-only" in output
+    assert final.stats["n_joined"] == len(maps) and final.stats["n_rejected"] == 0
+    from threadpoolctl import threadpool_limits
+
+    from linear_slam_ros.runtime import blas_threads_for
+
+    # the node's BLAS thread count: the feature-only chain carries rounding differences of the
+    # BLAS schedule to ~1e-6 m (VicPark200), so the bit-level comparison uses the same one
+    with threadpool_limits(limits=blas_threads_for("sequential")):
+        offline = fm.join_features_sequential([fm.to_feature_only(g) for g in fm.precondition(maps)])
+    got = final.feature_map
+    assert got.frame_ids == offline.frame_ids
+    np.testing.assert_array_equal(got.ids, offline.ids)
+    np.testing.assert_allclose(got.x, offline.x, rtol=0, atol=1e-9)
+
+
 def _synthetic(n_maps=8):
     world = make_world(2, 4 * n_maps, 25, np.random.default_rng(21))
     return noisy_local_maps(world, np.random.default_rng(22), steps_per_map=4)

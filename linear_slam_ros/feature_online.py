@@ -1,0 +1,93 @@
+"""Feature-only (D-SLAM) joining as submaps arrive: the node's ``map_type: feature-only``.
+
+Each pose-feature submap goes through the preconditioning of Sec. 8.3 online: consecutive
+submaps are merged as pose-feature maps until the next one shares a feature frame with them (2
+features in 2D, 3 non-collinear in 3D); the closed group's poses are then marginalised out
+(:func:`~linear_slam_ros.feature_maps.to_feature_only`) and it is joined, sequentially or with
+the online divide-and-conquer stack, into the feature-only global map. The open group is part of
+the published map too: :func:`feature_result` joins it in on demand.
+
+The state is one frozen value and :func:`feature_step` a pure function of (state, submap), as
+for the other map kinds. After the same submaps, ``sequential`` equals
+``join_features_sequential(precondition(maps))`` exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from linear_slam_ros.errors import GeometryError, InvalidMapError
+from linear_slam_ros.feature_maps import FeatureMap, Group, join_feature_maps, precondition_step, to_feature_only
+from linear_slam_ros.joining import counter_push
+from linear_slam_ros.local_map import FEATURE, LocalMap
+from linear_slam_ros.runner import JoinMethod
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FeatureJoinState:
+    """Feature-only joining state.
+
+    Attributes:
+        method: ``sequential`` (``stack`` holds one map) or ``online-dc`` (a binary-counter stack).
+        group: the open preconditioning group (``None`` before the first submap).
+        stack: joined feature-only maps of the closed groups, oldest first.
+        counts: closed groups in each stack entry.
+    """
+
+    method: JoinMethod
+    group: Group | None = None
+    stack: tuple[FeatureMap, ...] = ()
+    counts: tuple[int, ...] = ()
+
+    @property
+    def n_groups(self) -> int:
+        """Closed groups joined so far."""
+        return int(sum(self.counts))
+
+
+def feature_step(state: FeatureJoinState, submap: LocalMap) -> FeatureJoinState:
+    """Take one pose-feature submap (a pure function of state and submap).
+
+    Raises:
+        InvalidMapError: the submap holds no feature.
+        LinearSlamError: the submap cannot be merged or the closed group cannot be converted or
+            joined (the state is unchanged).
+    """
+    if not np.any(submap.kinds == FEATURE):
+        raise InvalidMapError(f"submap {submap.name!r} holds no feature: map_type feature-only joins pose-feature maps")
+    if state.group is not None and submap.dim != state.group.merged.dim:
+        raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {state.group.merged.dim}D")
+    closed, group = precondition_step(state.group, submap)
+    if closed is None:
+        return replace(state, group=group)
+    fmap = to_feature_only(closed)
+    if state.method is JoinMethod.SEQUENTIAL:
+        joined = join_feature_maps(state.stack[0], fmap) if state.stack else fmap
+        return replace(state, group=group, stack=(joined,), counts=(state.n_groups + 1,))
+    stack, counts = counter_push(state.stack, state.counts, fmap, join_feature_maps)
+    return replace(state, group=group, stack=stack, counts=counts)
+
+
+def feature_result(state: FeatureJoinState) -> FeatureMap | None:
+    """Return the global feature-only map, the open group included (``None`` if there is none).
+
+    The open group is left out, with a debug message, while it cannot define a feature frame
+    (fewer than 2 features in 2D, 3 non-collinear in 3D).
+    """
+    maps = list(state.stack)
+    if state.group is not None:
+        try:
+            maps.append(to_feature_only(state.group.closed()))
+        except GeometryError as exc:
+            logger.debug("open group left out of the feature-only map: %s", exc)
+    if not maps:
+        return None
+    result = maps[-1]
+    for older in reversed(maps[:-1]):
+        result = join_feature_maps(older, result)
+    return result

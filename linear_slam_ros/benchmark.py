@@ -56,6 +56,27 @@ PAPER_CHI2 = {
 }
 
 
+# Feature-only joining (Sec. 8.3): the datasets and methods benchmarked, and Table 5's RMSE of
+# Linear SLAM (2D: against I-DMJ, i.e. the feature-only Nonlinear LS; Simu3D: against ground truth).
+FEATURE_ONLY_RUNS = {
+    "VicPark_200_local_maps": ("dc", "online-dc", "sequential"),
+    "DLR_200_local_maps": ("dc", "online-dc", "sequential"),
+    "Simu_3D_870_Loop": ("dc", "online-dc"),
+}
+PAPER_FEATURE_RMSE = {"VicPark_200_local_maps": 0.193141, "DLR_200_local_maps": 0.393460, "Simu_3D_870_Loop": 0.0014850}
+
+
+def benchmark_feature_only(dataset: Dataset) -> dict[str, Any]:
+    """Feature-only joining of a pose-feature dataset by each method, with RMSE against its NLS."""
+    from linear_slam_ros.feature_online import run_feature_join
+
+    runs = {}
+    for method in FEATURE_ONLY_RUNS.get(dataset.name, ()):
+        gc.collect()
+        runs[method] = run_feature_join(dataset.maps, JoinMethod(method), refine_too=True).report
+    return runs
+
+
 def _rmse_or_none(a: LocalMap, b: LocalMap, kind: int) -> float | None:
     try:
         return rmse(a, b, kind)
@@ -98,6 +119,7 @@ def benchmark_dataset(dataset: Dataset, methods: Sequence[str], out_dir: Path) -
             runs[method]["latency_by_tenth"] = _latency_by_tenth(run)
             _plot_latency(run, dataset.name, out_dir / f"latency_{dataset.name}.png")
     entry["methods"] = runs
+    entry["feature_only"] = benchmark_feature_only(dataset)
     entry["reference_seconds"] = REFERENCE_SECONDS.get(dataset.name, {})
     entry["paper_chi2"] = PAPER_CHI2.get(dataset.name, {})
     return entry
@@ -169,6 +191,18 @@ def to_markdown(entries: list[dict[str, Any]]) -> str:
             f"| {e['dataset']} | Nonlinear LS (from D&C) | {_fmt(nls['seconds_from_dc'])} | | | | | | {_fmt(nls['chi2'], 2)} | "
             f"{e['paper_chi2'].get('nls', '')} | | |"
         )
+    lines += [
+        "", "Feature-only joining (poses marginalised; RMSE of features against the feature-only Nonlinear LS):", "",
+        "| dataset | method | groups | seconds | p99 ms | χ² linear | χ² NLS | feature RMSE vs NLS | paper RMSE (Table 5) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for e in entries:
+        for method, r in e.get("feature_only", {}).items():
+            lines.append(
+                f"| {e['dataset']} | {method} | {r['n_feature_maps']} | {_fmt(r['seconds'])} | {_fmt(r['per_submap_ms_p99'])} | "
+                f"{_fmt(r['linear_chi2'], 2)} | {_fmt(r['chi2'], 2)} | {_fmt(r['rmse_feature_linear_vs_nls'], 6)} | "
+                f"{PAPER_FEATURE_RMSE.get(e['dataset'], '')} |"
+            )
     lines += ["", "Per-submap latency of online D&C by tenth of the run (p50 / max, ms):", ""]
     for e in entries:
         tenths = e["methods"].get("online-dc", {}).get("latency_by_tenth")

@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-import scipy.sparse as sp
 
 from linear_slam_ros.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
 from linear_slam_ros.errors import LinearSlamError
@@ -127,60 +126,18 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
 
 def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: bool) -> int:
     """Feature-only (D-SLAM) joining of a pose-feature dataset: precondition, marginalise, join."""
-    from linear_slam_ros import feature_maps as fm
-
     if not dataset.kind.has_features:
         logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
         return 2
-    steps: list[float] = []
-    t0 = time.perf_counter()
-    if args.method == JoinMethod.ONLINE_DC.value:
-        from linear_slam_ros.feature_online import FeatureJoinState, feature_result, feature_step
+    from linear_slam_ros.feature_online import run_feature_join
 
-        state = FeatureJoinState(JoinMethod.ONLINE_DC)
-        for m in dataset.maps:
-            t_step = time.perf_counter()
-            state = feature_step(state, m)
-            steps.append(time.perf_counter() - t_step)
-        joined = feature_result(state)
-        assert joined is not None
-        seconds = time.perf_counter() - t0
-        groups = fm.precondition(dataset.maps)  # for the objective (not timed)
-        feature_maps = [fm.to_feature_only(g) for g in groups]
-    else:
-        groups = fm.precondition(dataset.maps)
-        feature_maps = [fm.to_feature_only(g) for g in groups]
-        joiner = fm.join_features_sequential if args.method == "sequential" else fm.join_features_dc
-        joined = joiner(feature_maps, on_join=steps.append)
-        seconds = time.perf_counter() - t0
-    residual, _ = fm.feature_residuals(joined, joined.x, feature_maps, jacobian=False)
-    weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
-    report: dict[str, object] = {
-        "dataset": dataset.name,
-        "kind": dataset.kind.value,
-        "map_type": "feature-only",
-        "method": args.method,
-        "n_submaps": len(dataset.maps),
-        "n_feature_maps": len(feature_maps),
-        "state_dim": joined.state_dim,
-        "seconds": seconds,
-        **latency_summary(steps),
-        "latency_unit": "per submap" if args.method == JoinMethod.ONLINE_DC.value else "per pairwise join",
-        "peak_rss_mb": peak_rss_mb(),
-        "chi2": float(residual @ (weight @ residual)),
-        "info_nnz": int(sp.csr_matrix(joined.info).count_nonzero()),
-        "frame_features": list(joined.frame_ids),
-    }
-    out_map = joined
-    if refine_too:
-        refined = fm.refine_features(joined, feature_maps)
-        report.update({"linear_chi2": report["chi2"], "chi2": refined.chi2, "refine_iterations": refined.iterations,
-                       "rmse_feature_linear_vs_nls": fm.feature_rmse(joined, refined.map)})
-        out_map = refined.map
+    run = run_feature_join(dataset.maps, JoinMethod(args.method), refine_too)
+    report: dict[str, object] = {"dataset": dataset.name, "kind": dataset.kind.value, **run.report}
+    out_map = run.refined if run.refined is not None else run.joined
     write_feature_result(args.out, out_map)
     _write_report(args.out, report)
     logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
-                dataset.name, args.method, len(dataset.maps), len(feature_maps), seconds, report["chi2"])
+                dataset.name, args.method, len(dataset.maps), report["n_feature_maps"], report["seconds"], report["chi2"])
     return 0
 
 

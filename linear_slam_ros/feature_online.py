@@ -15,15 +15,22 @@ for the other map kinds. After the same submaps, ``sequential`` equals
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, replace
+from typing import Any, Sequence
 
 import numpy as np
+import scipy.sparse as sp
 
 from linear_slam_ros.errors import GeometryError, InvalidMapError
-from linear_slam_ros.feature_maps import FeatureMap, Group, join_feature_maps, precondition_step, to_feature_only
+from linear_slam_ros.feature_maps import (
+    FeatureMap, Group, feature_residuals, feature_rmse, join_feature_maps, join_features_dc, join_features_sequential,
+    precondition, precondition_step, refine_features, to_feature_only,
+)
 from linear_slam_ros.joining import counter_push
 from linear_slam_ros.local_map import FEATURE, LocalMap
-from linear_slam_ros.runner import JoinMethod
+from linear_slam_ros.metrics import latency_summary
+from linear_slam_ros.runner import JoinMethod, peak_rss_mb
 
 logger = logging.getLogger(__name__)
 
@@ -91,3 +98,69 @@ def feature_result(state: FeatureJoinState) -> FeatureMap | None:
     for older in reversed(maps[:-1]):
         result = join_feature_maps(older, result)
     return result
+
+
+@dataclass(frozen=True)
+class FeatureRun:
+    """A timed feature-only joining run of pose-feature local maps (CLI and benchmark).
+
+    Attributes:
+        joined: the linear result.
+        refined: the feature-only Nonlinear LS from ``joined`` (I-DMJ's optimum), if asked.
+        report: figures: seconds (joining only), latency, χ² (of the refined map when there is
+            one, with ``linear_chi2``), RMSE of the linear result against the refined one.
+    """
+
+    joined: FeatureMap
+    refined: FeatureMap | None
+    report: dict[str, Any]
+
+
+def run_feature_join(maps: Sequence[LocalMap], method: JoinMethod, refine_too: bool = False) -> FeatureRun:
+    """Precondition, marginalise and join pose-feature maps as feature-only maps, timed.
+
+    ``online-dc`` runs :func:`feature_step` per submap (latency per submap); ``sequential`` and
+    ``dc`` convert every group first and time each pairwise join.
+    """
+    steps: list[float] = []
+    t0 = time.perf_counter()
+    if method is JoinMethod.ONLINE_DC:
+        state = FeatureJoinState(JoinMethod.ONLINE_DC)
+        for m in maps:
+            t_step = time.perf_counter()
+            state = feature_step(state, m)
+            steps.append(time.perf_counter() - t_step)
+        result = feature_result(state)
+        if result is None:
+            raise InvalidMapError("no group of the local maps defines a feature frame")
+        joined = result
+        seconds = time.perf_counter() - t0
+        feature_maps = [to_feature_only(g) for g in precondition(maps)]  # for the objective (not timed)
+    else:
+        feature_maps = [to_feature_only(g) for g in precondition(maps)]
+        joiner = join_features_sequential if method is JoinMethod.SEQUENTIAL else join_features_dc
+        joined = joiner(feature_maps, on_join=steps.append)
+        seconds = time.perf_counter() - t0
+    residual, _ = feature_residuals(joined, joined.x, feature_maps, jacobian=False)
+    weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
+    report: dict[str, Any] = {
+        "map_type": "feature-only",
+        "method": method.value,
+        "n_submaps": len(maps),
+        "n_feature_maps": len(feature_maps),
+        "state_dim": joined.state_dim,
+        "seconds": seconds,
+        **latency_summary(steps),
+        "latency_unit": "per submap" if method is JoinMethod.ONLINE_DC else "per pairwise join",
+        "peak_rss_mb": peak_rss_mb(),
+        "chi2": float(residual @ (weight @ residual)),
+        "info_nnz": int(sp.csr_matrix(joined.info).count_nonzero()),
+        "frame_features": list(joined.frame_ids),
+    }
+    refined = None
+    if refine_too:
+        nls = refine_features(joined, feature_maps)
+        refined = nls.map
+        report.update({"linear_chi2": report["chi2"], "chi2": nls.chi2, "refine_iterations": nls.iterations,
+                       "rmse_feature_linear_vs_nls": feature_rmse(joined, refined)})
+    return FeatureRun(joined, refined, report)

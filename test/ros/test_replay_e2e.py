@@ -88,7 +88,7 @@ def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchma
     (out / f"{name}_{mode}.json").write_text(json.dumps(figures, indent=2) + "\n")
 
 
-def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benchmark):
+def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benchmark, tmp_path):
     """map_type feature-only: VicPark200's pose-feature bag becomes the feature-only global map."""
     from linear_slam_ros import feature_maps as fm
     from msg_adapters import decode_feature_map
@@ -96,10 +96,16 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     name = "VicPark_200_local_maps"
     maps = read_benchmark(name).maps
     records = list(read_messages(_bag(name)))
-    joiner = start_joiner(mode="sequential", map_type="feature-only", publish_rate=10.0)
+    saved = tmp_path / "saved_map"
+    joiner = start_joiner(mode="sequential", map_type="feature-only", publish_rate=10.0, save_directory=str(saved))
     play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
     final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner,
                                    decode=decode_feature_map)
+    result = _call(node, joiner, "save_map")
+    assert result.success, result.message
+    assert (saved / "features.txt").exists() and not (saved / "poses.txt").exists()
+    back = [decode_feature_map(*parts_of(r.raw)) for r in read_messages(saved / "global_map_bag")]
+    np.testing.assert_array_equal(back[0].feature_map.x, final.feature_map.x)
     code, output = joiner.stop()
     assert code == 0, output[-2000:]
     assert "map_type=feature-only" in output
@@ -137,7 +143,15 @@ def test_late_subscriber_gets_the_latched_map(node, start_joiner):
     assert got.n_submaps == len(maps) and got.local_map.x.tobytes() == first.local_map.x.tobytes()
 
 
-def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner):
+def _call(node, joiner, service):
+    client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/{service}")
+    assert client.wait_for_service(timeout_sec=20)
+    future = client.call_async(Trigger.Request())
+    rclpy.spin_until_future_complete(node, future, timeout_sec=30)
+    return future.result()
+
+
+def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner, tmp_path):
     maps = _synthetic()
     good = [to_msg(encode_map(m, i)) for i, m in enumerate(maps, start=1)]
     garbage = Float64MultiArray(data=[1.0, 2.0, 3.0])  # no layout
@@ -145,7 +159,8 @@ def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner):
     wrong_frame = to_msg(encode_map(maps[6], 99))  # seq 99 is early: buffered, never joined
     duplicate = good[1]
     stream = good[:2] + [garbage, duplicate, nan_map] + good[2:] + [wrong_frame]
-    joiner = start_joiner(publish_rate=20.0, reorder_window=5)
+    saved = tmp_path / "saved_map"
+    joiner = start_joiner(publish_rate=20.0, reorder_window=5, save_directory=str(saved))
     _publish_all(node, joiner.topic("local_map"), stream)
     final, _ = wait_for_global_map(
         node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps) and m.stats["n_rejected"] >= 3, 60.0, joiner
@@ -156,12 +171,8 @@ def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner):
 
     # ~/save_map writes the reference format and a bag; ~/reset clears the map
     for service, expect in (("save_map", "saved 8 submaps"), ("reset", "global map cleared")):
-        client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/{service}")
-        assert client.wait_for_service(timeout_sec=20)
-        future = client.call_async(Trigger.Request())
-        rclpy.spin_until_future_complete(node, future, timeout_sec=30)
-        assert future.result().success and expect in future.result().message
-    saved = REPO / "saved_map"
+        result = _call(node, joiner, service)
+        assert result.success and expect in result.message
     assert (saved / "poses.txt").exists() and (saved / "global_map_bag" / "metadata.yaml").exists()
     back = [decode_map(*parts_of(r.raw)) for r in read_messages(saved / "global_map_bag")]
     assert back[0].n_submaps == len(maps)

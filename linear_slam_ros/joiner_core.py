@@ -37,8 +37,8 @@ class JoinerState:
         mode: ``sequential`` or ``online-dc``.
         sequential: state of exact sequential joining (mode ``sequential``).
         online: state of online divide and conquer (mode ``online-dc``).
-        map_type: ``as-is``, or ``feature-only`` (then only ``features`` is used).
-        features: state of feature-only joining (``map_type`` ``feature-only``).
+        features: state of feature-only joining; set exactly when ``map_type`` is
+            ``feature-only`` (then the other joining states stay empty).
         first_pose_id: frame pose of the first joined submap (``map_frame`` of the outputs).
         n_joined: submaps joined.
         next_seq: sequence number expected next (``None`` before the first submap).
@@ -48,12 +48,16 @@ class JoinerState:
     mode: JoinMethod
     sequential: SequentialState = SequentialState()
     online: OnlineDCState = OnlineDCState()
-    map_type: MapType = MapType.AS_IS
     features: FeatureJoinState | None = None
     first_pose_id: int | None = None
     n_joined: int = 0
     next_seq: int | None = None
     last_seq: int | None = None
+
+    @property
+    def map_type(self) -> MapType:
+        """``feature-only`` when the state joins feature-only maps, else ``as-is``."""
+        return MapType.AS_IS if self.features is None else MapType.FEATURE_ONLY
 
 
 def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
@@ -62,8 +66,8 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
     Raises:
         LinearSlamError: the submap cannot be joined (the state is unchanged).
     """
-    if state.map_type is MapType.FEATURE_ONLY:
-        new = replace(state, features=feature_step(state.features or FeatureJoinState(state.mode), submap))
+    if state.features is not None:
+        new = replace(state, features=feature_step(state.features, submap))
     elif state.mode is JoinMethod.SEQUENTIAL:
         new = replace(state, sequential=sequential_step(state.sequential, submap))
     else:
@@ -75,7 +79,7 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
 def new_state(mode: JoinMethod, map_type: MapType = MapType.AS_IS) -> JoinerState:
     """Return the empty state of a joiner."""
     features = FeatureJoinState(mode) if map_type is MapType.FEATURE_ONLY else None
-    return JoinerState(mode, map_type=map_type, features=features)
+    return JoinerState(mode, features=features)
 
 
 def global_map_of(state: JoinerState, output_frame: str = "end_pose") -> LocalMap | None:

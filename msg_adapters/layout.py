@@ -48,11 +48,11 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import InvalidMapError, MessageError
-from linear_slam_ros.feature_maps import FeatureMap
-from linear_slam_ros.geometry import pose_size
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.pose_graph import PoseGraphChunk
+from linear_slam_ros.core.errors import InvalidMapError, MessageError
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -269,7 +269,7 @@ def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatA
         raise MessageError(f"{what}: repeated information entry")
     upper = sp.coo_matrix((vals, (rows, cols)), shape=(n, n))
     info = (upper + sp.triu(upper, k=1).T).tocsr()
-    from linear_slam_ros.solvers import DENSE_MAX
+    from linear_slam_ros.core.solvers import DENSE_MAX
 
     stored = info.toarray() if n <= DENSE_MAX else info
     stats = None

@@ -15,9 +15,9 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from linear_slam_ros.feature_maps import FeatureMap, expansion_matrix
-from linear_slam_ros.geometry import rotation
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
+from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
+from linear_slam_ros.core.geometry import rotation
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -16,7 +16,7 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def read_benchmark():
     """Return a cached reader of benchmark datasets (unpacked under .cache/datasets)."""
-    from linear_slam_ros.datasets import read_dataset
+    from linear_slam_ros.io.datasets import read_dataset
 
     cache: dict[str, object] = {}
 

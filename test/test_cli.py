@@ -7,8 +7,8 @@ import json
 import pytest
 
 from support import CACHE, dataset_archive
-from linear_slam_ros.cli import main
-from linear_slam_ros.datasets import read_rows
+from linear_slam_ros.cli.main import main
+from linear_slam_ros.io.datasets import read_rows
 
 REPORT_KEYS = {
     "method", "n_submaps", "state_dim", "seconds", "per_submap_ms_p50", "per_submap_ms_p99",

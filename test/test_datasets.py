@@ -7,7 +7,7 @@ import tarfile
 import numpy as np
 import pytest
 
-from linear_slam_ros.datasets import (
+from linear_slam_ros.io.datasets import (
     MapKind,
     detect_kind,
     format_local_map,
@@ -19,9 +19,9 @@ from linear_slam_ros.datasets import (
     write_features,
     write_poses,
 )
-from linear_slam_ros.errors import DatasetError, InvalidMapError
-from linear_slam_ros.local_map import FEATURE, POSE
-from linear_slam_ros.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
+from linear_slam_ros.core.errors import DatasetError, InvalidMapError
+from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
 
 PF_TEXT = """0
 5

@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from linear_slam_ros import feature_maps as fm
-from linear_slam_ros.errors import GeometryError
-from linear_slam_ros.synthetic import exact_local_maps, make_world, noisy_local_maps
+from linear_slam_ros.feature_only import maps as fm
+from linear_slam_ros.core.errors import GeometryError
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world, noisy_local_maps
 from support import CACHE, dataset_archive
 
 
@@ -116,7 +116,7 @@ def test_lemma_1_for_feature_only_maps(dim):
     ("DLR_200_local_maps", "dc", 0.40),
 ])
 def test_feature_rmse_against_the_feature_only_optimum(name, method, bound, tmp_path, monkeypatch):
-    from linear_slam_ros.cli import main
+    from linear_slam_ros.cli.main import main
 
     monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
     args = ["refine", str(dataset_archive(name)), "--map-type", "feature-only", "--method", method, "--out", str(tmp_path)]

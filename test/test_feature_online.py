@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros import feature_maps as fm
-from linear_slam_ros.errors import InvalidMapError
-from linear_slam_ros.feature_online import FeatureJoinState, feature_result, feature_step
-from linear_slam_ros.joiner_core import Joiner, global_feature_map_of, global_map_of
-from linear_slam_ros.local_map import FEATURE, POSE
-from linear_slam_ros.runner import JoinMethod, MapType
-from linear_slam_ros.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.feature_only import maps as fm
+from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
+from linear_slam_ros.joiner.joiner import Joiner, global_feature_map_of, global_map_of
+from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.evaluation.runner import JoinMethod, MapType
+from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
 
 
 def _maps(dim: int, n_poses: int = 24, seed: int = 31, steps: int = 3, sensor_range: float = 7.0):

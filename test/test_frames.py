@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import FrameError
-from linear_slam_ros.frames import change_frame, frame_layout, reframe, reframe_jacobian, transform_information
-from linear_slam_ros.synthetic import exact_local_maps, make_world
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian, transform_information
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world
 
 
 def _map(dim, rng, poses_per_map=4):

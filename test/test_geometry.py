@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros import geometry as g
-from linear_slam_ros.errors import GeometryError
+from linear_slam_ros.core import geometry as g
+from linear_slam_ros.core.errors import GeometryError
 
 
 def _fd(fun, x: np.ndarray, eps: float = 1e-6) -> np.ndarray:

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import pytest
 
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.local_map import FEATURE, POSE
-from linear_slam_ros.metrics import rmse
-from linear_slam_ros.nonlinear import refine
-from linear_slam_ros.objective import chi2
-from linear_slam_ros.runner import JoinMethod, run_join
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.evaluation.metrics import rmse
+from linear_slam_ros.evaluation.nonlinear import refine
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.runner import JoinMethod, run_join
 
 # dataset: (D&C chi2, Nonlinear LS chi2, RMSE pose, RMSE feature) from the paper
 PAPER = {

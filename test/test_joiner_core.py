@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.joiner_core import Joiner, global_map_of
-from linear_slam_ros.runner import JoinMethod, run_join
-from linear_slam_ros.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joiner.joiner import Joiner, global_map_of
+from linear_slam_ros.evaluation.runner import JoinMethod, run_join
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 
 
 @pytest.fixture

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.joining import (
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.geometry import wrap_angle
+from linear_slam_ros.joining.pairwise import (
     OnlineDCState,
     align_frames,
     express_in,
@@ -20,11 +20,11 @@ from linear_slam_ros.joining import (
     online_dc_result,
     online_dc_step,
 )
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.nonlinear import gauss_newton, refine
-from linear_slam_ros.objective import chi2
-from linear_slam_ros.sequential import join_sequential
-from linear_slam_ros.synthetic import exact_local_maps, exact_map, exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.joining.sequential import join_sequential
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_map, exact_pose_graph_maps, make_world, noisy_local_maps
 
 JOINERS = {
     "sequential": join_sequential,

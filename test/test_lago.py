@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import GraphError
-from linear_slam_ros.geometry import relative_pose, wrap_angle
-from linear_slam_ros.lago import (
+from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.core.geometry import relative_pose, wrap_angle
+from linear_slam_ros.pose_graph.lago import (
     PoseGraph,
     chunk_end_pose,
     edge_maps,
@@ -16,10 +16,10 @@ from linear_slam_ros.lago import (
     read_g2o,
     write_g2o,
 )
-from linear_slam_ros.nonlinear import gauss_newton
-from linear_slam_ros.objective import MapObjective
-from linear_slam_ros.pose_graph import PoseGraphChunk, chunk_to_local_map
-from linear_slam_ros.synthetic import make_world
+from linear_slam_ros.evaluation.nonlinear import gauss_newton
+from linear_slam_ros.evaluation.objective import MapObjective
+from linear_slam_ros.pose_graph.chunks import PoseGraphChunk, chunk_to_local_map
+from linear_slam_ros.evaluation.synthetic import make_world
 
 
 def circle_graph(rng, n=60, loops=3.0, per_loop=20, sigma=(0.0, 0.0)):

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import InvalidMapError
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, angle_mask
+from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask
 
 
 def _good(**over):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
-from linear_slam_ros.metrics import latency_summary, rmse
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.evaluation.metrics import latency_summary, rmse
 
 
 def _m(x, frame=0, name="m"):

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.joining import express_in, join_divide_and_conquer
-from linear_slam_ros.local_map import FEATURE, POSE
-from linear_slam_ros.metrics import nees
-from linear_slam_ros.nonlinear import gauss_newton, refine
-from linear_slam_ros.objective import MapObjective, chi2
-from linear_slam_ros.sequential import join_sequential
-from linear_slam_ros.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.joining.pairwise import express_in, join_divide_and_conquer
+from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.evaluation.metrics import nees
+from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
+from linear_slam_ros.evaluation.objective import MapObjective, chi2
+from linear_slam_ros.joining.sequential import join_sequential
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import GraphError
-from linear_slam_ros.pose_graph import PoseGraphChunk, chunk_to_local_map, star_chunk_to_local_map
+from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.pose_graph.chunks import PoseGraphChunk, chunk_to_local_map, star_chunk_to_local_map
 
 
 def _chunk(**over):

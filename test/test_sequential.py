@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.joining import join_sequential_information
-from linear_slam_ros.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
-from linear_slam_ros.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.joining.pairwise import join_sequential_information
+from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
+from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
 
 
 @pytest.mark.parametrize("dim", [2, 3])

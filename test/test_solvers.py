@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import SolverError
-from linear_slam_ros.solvers import backend_name, solve_dense_spd, solve_sparse_spd, solve_spd
+from linear_slam_ros.core.errors import SolverError
+from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd, solve_spd
 
 
 def _spd(n, rng):

@@ -13,11 +13,11 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from linear_slam_ros.datasets import read_dataset
-from linear_slam_ros.errors import LinearSlamError
-from linear_slam_ros.geometry import pose_size
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.pose_graph import PoseGraphChunk
+from linear_slam_ros.io.datasets import read_dataset
+from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
 from linear_slam_ros.ros.bagio import write_messages
 from msg_adapters.layout import Stamp, encode_chunk, encode_map
 

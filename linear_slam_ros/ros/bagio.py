@@ -9,7 +9,7 @@ from typing import Iterable, Iterator, NamedTuple
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 
-from linear_slam_ros.errors import DatasetError
+from linear_slam_ros.core.errors import DatasetError
 from msg_adapters.bags import MSGTYPE, TYPESTORE, serialize
 from msg_adapters.layout import Encoded
 

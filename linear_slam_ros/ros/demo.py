@@ -24,10 +24,10 @@ import rclpy
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
-from linear_slam_ros.cli import write_result
-from linear_slam_ros.datasets import read_dataset
-from linear_slam_ros.objective import chi2
-from linear_slam_ros.plots import plot_map
+from linear_slam_ros.cli.main import write_result
+from linear_slam_ros.io.datasets import read_dataset
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.plots import plot_map
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import read_messages, write_messages
 from linear_slam_ros.ros.player import play

@@ -25,15 +25,15 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from linear_slam_ros.cli import write_feature_result, write_result
-from linear_slam_ros.errors import LinearSlamError
-from linear_slam_ros.feature_maps import FeatureMap
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.joiner_core import OUTPUT_FRAMES, Joiner, JoinerState, global_feature_map_of, global_map_of
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.pose_graph import chunk_to_local_map
-from linear_slam_ros.runner import JoinMethod, MapType
-from linear_slam_ros.runtime import blas_threads_for, set_blas_threads, tune_allocator
+from linear_slam_ros.cli.main import write_feature_result, write_result
+from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.joiner.joiner import OUTPUT_FRAMES, Joiner, JoinerState, global_feature_map_of, global_map_of
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+from linear_slam_ros.evaluation.runner import JoinMethod, MapType
+from linear_slam_ros.core.runtime import blas_threads_for, set_blas_threads, tune_allocator
 from msg_adapters import MAP_KIND_GLOBAL, Encoded, Stamp, decode_chunk, decode_map, encode_feature_map, encode_map
 from msg_adapters.ros import parts, to_msg
 from msg_adapters.views import (

@@ -20,7 +20,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
-from linear_slam_ros.errors import LinearSlamError
+from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.errors import GraphError, InvalidMapError, MessageError
-from linear_slam_ros.joining import join_divide_and_conquer
-from linear_slam_ros.pose_graph import PoseGraphChunk
-from linear_slam_ros.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.core.errors import GraphError, InvalidMapError, MessageError
+from linear_slam_ros.joining.pairwise import join_divide_and_conquer
+from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
 from msg_adapters.ros import parts, to_msg
@@ -117,7 +117,7 @@ def test_map_message_errors(rng):
 
 
 def test_map_message_information_errors():
-    from linear_slam_ros.local_map import LocalMap
+    from linear_slam_ros.core.local_map import LocalMap
 
     m = LocalMap(2, 0, None, np.array([1]), np.array([1], np.int8), np.zeros(2), np.eye(2))
     enc = encode_map(m, 1)
@@ -151,7 +151,7 @@ def test_chunk_message_errors():
 
 
 def _feature_map(dim, rng):
-    from linear_slam_ros import feature_maps as fm
+    from linear_slam_ros.feature_only import maps as fm
 
     world = make_world(dim, 12, 20, rng)
     return fm.join_features_sequential([fm.to_feature_only(g) for g in fm.precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))])

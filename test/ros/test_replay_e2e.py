@@ -17,12 +17,12 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from ros_support import LATCHED, REPO, wait_for_global_map
-from linear_slam_ros.objective import chi2
+from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import read_messages
 from linear_slam_ros.ros.player import play
-from linear_slam_ros.runner import run_join
-from linear_slam_ros.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.evaluation.runner import run_join
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from msg_adapters import decode_map, encode_map
 from msg_adapters.ros import to_msg
 
@@ -90,7 +90,7 @@ def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchma
 
 def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benchmark, tmp_path):
     """map_type feature-only: VicPark200's pose-feature bag becomes the feature-only global map."""
-    from linear_slam_ros import feature_maps as fm
+    from linear_slam_ros.feature_only import maps as fm
     from msg_adapters import decode_feature_map
 
     name = "VicPark_200_local_maps"
@@ -112,7 +112,7 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     assert final.stats["n_joined"] == len(maps) and final.stats["n_rejected"] == 0
     from threadpoolctl import threadpool_limits
 
-    from linear_slam_ros.runtime import blas_threads_for
+    from linear_slam_ros.core.runtime import blas_threads_for
 
     # the node's BLAS thread count: the feature-only chain carries rounding differences of the
     # BLAS schedule to ~1e-6 m (VicPark200), so the bit-level comparison uses the same one
@@ -198,11 +198,11 @@ MAPS_PER_CHUNK = 5
 def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark):
     """Raw relative-pose chunks (5 local maps' edges each: chains with loop closures) -> LAGO ->
     joining, with no iteration and no initial guess anywhere."""
-    from linear_slam_ros.frames import change_frame
-    from linear_slam_ros.lago import edge_maps, graph_from_local_maps
-    from linear_slam_ros.nonlinear import gauss_newton
-    from linear_slam_ros.objective import MapObjective
-    from linear_slam_ros.pose_graph import chunk_to_local_map
+    from linear_slam_ros.core.frames import change_frame
+    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps
+    from linear_slam_ros.evaluation.nonlinear import gauss_newton
+    from linear_slam_ros.evaluation.objective import MapObjective
+    from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
     from linear_slam_ros.ros.bag_from_dataset import chunk_of
 
     maps = list(read_benchmark(name).maps)

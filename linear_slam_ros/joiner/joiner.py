@@ -15,14 +15,14 @@ from typing import Callable
 
 import numpy as np
 
-from linear_slam_ros.errors import InvalidMapError, LinearSlamError
-from linear_slam_ros.feature_maps import FeatureMap
-from linear_slam_ros.feature_online import FeatureJoinState, feature_result, feature_step
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.joining import OnlineDCState, online_dc_result, online_dc_step
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.runner import JoinMethod, MapType
-from linear_slam_ros.sequential import SequentialState, sequential_step
+from linear_slam_ros.core.errors import InvalidMapError, LinearSlamError
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.joining.pairwise import OnlineDCState, online_dc_result, online_dc_step
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.evaluation.runner import JoinMethod, MapType
+from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 
 logger = logging.getLogger(__name__)
 

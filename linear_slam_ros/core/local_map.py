@@ -21,8 +21,8 @@ import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from linear_slam_ros.errors import InvalidMapError
-from linear_slam_ros.geometry import angle_size, point_size, pose_size, wrap_angle
+from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.core.geometry import angle_size, point_size, pose_size, wrap_angle
 
 logger = logging.getLogger(__name__)
 

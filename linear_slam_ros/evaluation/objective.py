@@ -16,9 +16,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import FrameError
-from linear_slam_ros.geometry import points_to_frame, pose_size, poses_to_frame, wrap_angle
-from linear_slam_ros.local_map import POSE, LocalMap, pose_key, to_dense
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.geometry import points_to_frame, pose_size, poses_to_frame, wrap_angle
+from linear_slam_ros.core.local_map import POSE, LocalMap, pose_key, to_dense
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -171,7 +171,7 @@ def chi2(global_map: LocalMap, maps: Sequence[LocalMap]) -> float:
     The joined map may be in any frame that is one of its poses or the maps' first frame; it is
     moved to the frame of ``maps[0]``'s frame pose first.
     """
-    from linear_slam_ros.frames import change_frame
+    from linear_slam_ros.core.frames import change_frame
 
     origin = maps[0].frame_id
     layout = change_frame(global_map, origin) if global_map.frame_id != origin else global_map

@@ -21,7 +21,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from linear_slam_ros.errors import GeometryError
+from linear_slam_ros.core.errors import GeometryError
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
 
 
 def plot_map(local_map: LocalMap, path: Path, title: str = "") -> None:

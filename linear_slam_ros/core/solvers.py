@@ -21,7 +21,7 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from linear_slam_ros.errors import SolverError
+from linear_slam_ros.core.errors import SolverError
 
 try:  # pragma: no cover - exercised through whichever backend is installed
     from sksparse.cholmod import CholmodNotPositiveDefiniteError as _NotPD

@@ -22,12 +22,12 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import FrameError, GeometryError, InvalidMapError
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.geometry import drot2, rot2
-from linear_slam_ros.joining import join_pair, solve_union
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
-from linear_slam_ros.solvers import DENSE_MAX
+from linear_slam_ros.core.errors import FrameError, GeometryError, InvalidMapError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.geometry import drot2, rot2
+from linear_slam_ros.joining.pairwise import join_pair, solve_union
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
+from linear_slam_ros.core.solvers import DENSE_MAX
 
 logger = logging.getLogger(__name__)
 
@@ -573,7 +573,7 @@ def feature_residuals(
 
 def refine_features(initial: FeatureMap, maps: Sequence[FeatureMap], max_iterations: int = 50) -> FeatureRefineResult:
     """Gauss-Newton on ``sum_i ||g_i(X) - x_i||^2_{I_i}`` from ``initial`` (its frame stays fixed)."""
-    from linear_slam_ros.solvers import solve_sparse_spd
+    from linear_slam_ros.core.solvers import solve_sparse_spd
 
     weight = sp.block_diag([sp.csr_matrix(to_dense(m.info)) for m in maps], format="csr")
     x = initial.x.copy()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from linear_slam_ros.geometry import (
+from linear_slam_ros.core.geometry import (
     angle_size,
     compose_relative,
     points_from_frame,
@@ -27,8 +27,8 @@ from linear_slam_ros.geometry import (
     relative_pose,
     wrap_angle,
 )
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
-from linear_slam_ros.nonlinear import gauss_newton
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.evaluation.nonlinear import gauss_newton
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -3,7 +3,7 @@
 Each pose-feature submap goes through the preconditioning of Sec. 8.3 online: consecutive
 submaps are merged as pose-feature maps until the next one shares a feature frame with them (2
 features in 2D, 3 non-collinear in 3D); the closed group's poses are then marginalised out
-(:func:`~linear_slam_ros.feature_maps.to_feature_only`) and it is joined, sequentially or with
+(:func:`~linear_slam_ros.feature_only.maps.to_feature_only`) and it is joined, sequentially or with
 the online divide-and-conquer stack, into the feature-only global map. The open group is part of
 the published map too: :func:`feature_result` joins it in on demand.
 
@@ -22,15 +22,15 @@ from typing import Any, Sequence
 import numpy as np
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import GeometryError, InvalidMapError
-from linear_slam_ros.feature_maps import (
+from linear_slam_ros.core.errors import GeometryError, InvalidMapError
+from linear_slam_ros.feature_only.maps import (
     FeatureMap, Group, feature_residuals, feature_rmse, join_feature_maps, join_features_dc, join_features_sequential,
     precondition, precondition_step, refine_features, to_feature_only,
 )
-from linear_slam_ros.joining import counter_push
-from linear_slam_ros.local_map import FEATURE, LocalMap
-from linear_slam_ros.metrics import latency_summary
-from linear_slam_ros.runner import JoinMethod, peak_rss_mb
+from linear_slam_ros.joining.pairwise import counter_push
+from linear_slam_ros.core.local_map import FEATURE, LocalMap
+from linear_slam_ros.evaluation.metrics import latency_summary
+from linear_slam_ros.evaluation.runner import JoinMethod, peak_rss_mb
 
 logger = logging.getLogger(__name__)
 

@@ -16,9 +16,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg
 
-from linear_slam_ros.errors import GraphError, InvalidMapError
-from linear_slam_ros.geometry import pose_size
-from linear_slam_ros.local_map import POSE, LocalMap, default_end_pose, fuse_repeated
+from linear_slam_ros.core.errors import GraphError, InvalidMapError
+from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.local_map import POSE, LocalMap, default_end_pose, fuse_repeated
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -123,7 +123,7 @@ def chunk_to_local_map(chunk: PoseGraphChunk) -> LocalMap:
     if chunk.is_star:
         return star_chunk_to_local_map(chunk)
     try:
-        from linear_slam_ros.lago import lago_local_map  # issue 4: closed-form 2D pose graphs
+        from linear_slam_ros.pose_graph.lago import lago_local_map  # issue 4: closed-form 2D pose graphs
     except ImportError:
         raise GraphError(
             f"pose-graph chunk {chunk.seq} is not a star and this build has no LAGO: only star chunks are accepted"

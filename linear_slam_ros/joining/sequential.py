@@ -30,10 +30,10 @@ import numpy.typing as npt
 import scipy.linalg
 import scipy.linalg.blas
 
-from linear_slam_ros.errors import FrameError, InvalidMapError, SolverError
-from linear_slam_ros.frames import change_frame, frame_layout, reframe, reframe_jacobian
-from linear_slam_ros.geometry import angle_size, pose_size, wrap_angle
-from linear_slam_ros.local_map import POSE, LocalMap, VariableLayout, pose_key, to_dense, var_offsets
+from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
+from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian
+from linear_slam_ros.core.geometry import angle_size, pose_size, wrap_angle
+from linear_slam_ros.core.local_map import POSE, LocalMap, VariableLayout, pose_key, to_dense, var_offsets
 
 logger = logging.getLogger(__name__)
 

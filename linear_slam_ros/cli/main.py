@@ -14,15 +14,15 @@ from pathlib import Path
 from typing import Sequence
 
 
-from linear_slam_ros.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
-from linear_slam_ros.errors import LinearSlamError
-from linear_slam_ros.feature_maps import FeatureMap
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.local_map import FEATURE, LocalMap
-from linear_slam_ros.metrics import latency_summary
-from linear_slam_ros.nonlinear import refine
-from linear_slam_ros.objective import chi2
-from linear_slam_ros.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
+from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import FEATURE, LocalMap
+from linear_slam_ros.evaluation.metrics import latency_summary
+from linear_slam_ros.evaluation.nonlinear import refine
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
 
 logger = logging.getLogger("linear_slam_ros")
 
@@ -129,7 +129,7 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
     if not dataset.kind.has_features:
         logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
         return 2
-    from linear_slam_ros.feature_online import run_feature_join
+    from linear_slam_ros.feature_only.online import run_feature_join
 
     run = run_feature_join(dataset.maps, JoinMethod(args.method), refine_too)
     report: dict[str, object] = {"dataset": dataset.name, "kind": dataset.kind.value, **run.report}
@@ -143,9 +143,9 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
 
 def cmd_lago(args: argparse.Namespace) -> int:
     """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine."""
-    from linear_slam_ros.lago import edge_maps, graph_from_local_maps, lago, read_g2o
-    from linear_slam_ros.nonlinear import gauss_newton
-    from linear_slam_ros.objective import MapObjective
+    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps, lago, read_g2o
+    from linear_slam_ros.evaluation.nonlinear import gauss_newton
+    from linear_slam_ros.evaluation.objective import MapObjective
 
     source = Path(args.graph)
     if source.suffix == ".g2o":
@@ -177,7 +177,7 @@ def cmd_lago(args: argparse.Namespace) -> int:
 
 def cmd_unpack(args: argparse.Namespace) -> int:
     """Unpack every ``*.tar.xz`` dataset of a folder into the cache (idempotent)."""
-    from linear_slam_ros.datasets import resolve_dataset_dir
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
 
     archives = sorted(Path(args.datasets_dir).glob("*.tar.xz"))
     if not archives:
@@ -189,8 +189,8 @@ def cmd_unpack(args: argparse.Namespace) -> int:
 
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
-    """Run the benchmark over every dataset (see :mod:`linear_slam_ros.benchmark`)."""
-    from linear_slam_ros.benchmark import run_benchmark
+    """Run the benchmark over every dataset (see :mod:`linear_slam_ros.evaluation.benchmark`)."""
+    from linear_slam_ros.evaluation.benchmark import run_benchmark
 
     run_benchmark(args.datasets_dir, args.out, methods=args.methods, only=args.only)
     return 0

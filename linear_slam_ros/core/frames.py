@@ -16,9 +16,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import FrameError
-from linear_slam_ros.geometry import angles3, dangles3, drot3, pose_size, rot3, single_rotation, wrap_angle
-from linear_slam_ros.local_map import POSE, InfoMatrix, LocalMap, pose_key, var_offsets, var_sizes
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.geometry import angles3, dangles3, drot3, pose_size, rot3, single_rotation, wrap_angle
+from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, pose_key, var_offsets, var_sizes
 
 DENSE_MATMUL_MAX = 64
 """Up to this size ``G^T I G`` is two dense BLAS products; above, ``G`` is used as sparse."""

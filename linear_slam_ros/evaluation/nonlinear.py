@@ -14,12 +14,12 @@ from typing import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from linear_slam_ros.errors import SolverError
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.objective import MapObjective
-from linear_slam_ros.solvers import solve_sparse_spd
+from linear_slam_ros.core.errors import SolverError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.geometry import wrap_angle
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.evaluation.objective import MapObjective
+from linear_slam_ros.core.solvers import solve_sparse_spd
 
 logger = logging.getLogger(__name__)
 

@@ -20,10 +20,10 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import DatasetError, InvalidMapError
-from linear_slam_ros.geometry import pose_size
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, default_end_pose, fuse_repeated, var_keys
-from linear_slam_ros.solvers import DENSE_MAX
+from linear_slam_ros.core.errors import DatasetError, InvalidMapError
+from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, default_end_pose, fuse_repeated, var_keys
+from linear_slam_ros.core.solvers import DENSE_MAX
 
 logger = logging.getLogger(__name__)
 

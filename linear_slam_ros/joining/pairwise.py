@@ -19,11 +19,11 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.local_map import LocalMap, scalar_indices, to_csr, to_dense, var_offsets
-from linear_slam_ros.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.geometry import wrap_angle
+from linear_slam_ros.core.local_map import LocalMap, scalar_indices, to_csr, to_dense, var_offsets
+from linear_slam_ros.core.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
 
 logger = logging.getLogger(__name__)
 

@@ -8,11 +8,11 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Sequence, TypeVar
 
-from linear_slam_ros.errors import InvalidMapError
-from linear_slam_ros.joining import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
-from linear_slam_ros.local_map import LocalMap
-from linear_slam_ros.runtime import blas_threads, blas_threads_for, tune_allocator
-from linear_slam_ros.sequential import SequentialState, sequential_step
+from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.joining.pairwise import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.runtime import blas_threads, blas_threads_for, tune_allocator
+from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 
 
 class JoinMethod(str, enum.Enum):

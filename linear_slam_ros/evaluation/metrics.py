@@ -14,9 +14,9 @@ import numpy as np
 import numpy.typing as npt
 import scipy.stats
 
-from linear_slam_ros.errors import FrameError, InvalidMapError
-from linear_slam_ros.geometry import wrap_angle
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap, to_dense
+from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.geometry import wrap_angle
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -20,13 +20,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from linear_slam_ros.datasets import Dataset, read_dataset
-from linear_slam_ros.frames import change_frame
-from linear_slam_ros.local_map import FEATURE, POSE, LocalMap
-from linear_slam_ros.metrics import latency_summary, rmse
-from linear_slam_ros.nonlinear import refine
-from linear_slam_ros.objective import chi2
-from linear_slam_ros.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+from linear_slam_ros.io.datasets import Dataset, read_dataset
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.evaluation.metrics import latency_summary, rmse
+from linear_slam_ros.evaluation.nonlinear import refine
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ PAPER_FEATURE_RMSE = {"VicPark_200_local_maps": 0.193141, "DLR_200_local_maps": 
 
 def benchmark_feature_only(dataset: Dataset) -> dict[str, Any]:
     """Feature-only joining of a pose-feature dataset by each method, with RMSE against its NLS."""
-    from linear_slam_ros.feature_online import run_feature_join
+    from linear_slam_ros.feature_only.online import run_feature_join
 
     runs = {}
     for method in FEATURE_ONLY_RUNS.get(dataset.name, ()):

@@ -33,10 +33,10 @@ import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 
-from linear_slam_ros.errors import GraphError
-from linear_slam_ros.geometry import drot2, rot2, wrap_angle
-from linear_slam_ros.local_map import POSE, LocalMap
-from linear_slam_ros.solvers import solve_sparse_spd
+from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.core.geometry import drot2, rot2, wrap_angle
+from linear_slam_ros.core.local_map import POSE, LocalMap
+from linear_slam_ros.core.solvers import solve_sparse_spd
 
 logger = logging.getLogger(__name__)
 
@@ -295,7 +295,7 @@ def lago(graph: PoseGraph, anchor_id: int | None = None, regularization: bool = 
     perm = np.column_stack([2 * np.arange(n), 2 * np.arange(n) + 1, 2 * n + np.arange(n)]).ravel()
     info_p = info[perm][:, perm].tocsr()
     pose_ids = ids[keep]
-    from linear_slam_ros.solvers import DENSE_MAX
+    from linear_slam_ros.core.solvers import DENSE_MAX
 
     stored = info_p.toarray() if info_p.shape[0] <= DENSE_MAX else info_p
     result = LocalMap.trusted(2, anchor_id, None, pose_ids, np.full(n, POSE, dtype=np.int8), x, stored, "lago")
@@ -397,7 +397,7 @@ def lago_local_map(chunk: object) -> LocalMap:
     Raises:
         GraphError: the chunk is 3D, or disconnected.
     """
-    from linear_slam_ros.pose_graph import PoseGraphChunk
+    from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
 
     assert isinstance(chunk, PoseGraphChunk)
     if chunk.dim != 2:

@@ -16,7 +16,7 @@ _Dim = TYPESTORE.types["std_msgs/msg/MultiArrayDimension"]
 
 def to_bag_msg(encoded: Encoded) -> object:
     """Return a rosbags ``std_msgs/msg/Float64MultiArray`` carrying ``encoded``."""
-    dims = [_Dim(label=k, size=s, stride=s) for k, s in zip(encoded.labels, encoded.sizes)]
+    dims = [_Dim(label=k, size=s, stride=s) for k, s in zip(encoded.labels, encoded.sizes, strict=True)]
     return _Float64MultiArray(layout=_Layout(dim=dims, data_offset=0), data=np.asarray(encoded.data, dtype=np.float64))
 
 

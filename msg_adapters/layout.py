@@ -52,7 +52,7 @@ from linear_slam_ros.core.errors import InvalidMapError, MessageError
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.core.geometry import pose_size
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
+from linear_slam_ros.pose_graph.graph import PoseGraph
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -115,9 +115,16 @@ class FeatureMapMessage:
 
 @dataclass(frozen=True)
 class ChunkMessage:
-    """A decoded pose-graph chunk message."""
+    """A decoded pose-graph chunk message: the chunk's edges, and the message's seq and stamp.
 
-    chunk: PoseGraphChunk
+    Attributes:
+        graph: the chunk's edges, named ``"pose-graph chunk <seq>"``.
+        seq: sequence number of the chunk.
+        stamp: the message's stamp.
+    """
+
+    graph: PoseGraph
+    seq: int
     stamp: Stamp
 
 
@@ -317,16 +324,19 @@ def decode_feature_map(labels: Sequence[str], sizes: Sequence[int], data: FloatA
     return FeatureMapMessage(fmap, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
 
 
-def encode_chunk(chunk: PoseGraphChunk, stamp: Stamp = Stamp()) -> Encoded:
-    """Encode a pose-graph chunk into the documented layout."""
-    header = [FORMAT_VERSION, chunk.dim, MAP_KIND_POSE_GRAPH, chunk.seq, stamp.sec, stamp.nanosec, chunk.n_edges]
+def encode_chunk(graph: PoseGraph, seq: int, stamp: Stamp = Stamp()) -> Encoded:
+    """Encode a pose graph's edges as pose-graph chunk ``seq`` in the documented layout.
+
+    Only the edges travel: poses of ``graph.pose_ids`` that no edge names are not carried.
+    """
+    header = [FORMAT_VERSION, graph.dim, MAP_KIND_POSE_GRAPH, seq, stamp.sec, stamp.nanosec, graph.n_edges]
     return _encode(
         [
             ("header", header),
-            ("edge_from", chunk.from_ids),
-            ("edge_to", chunk.to_ids),
-            ("measurement", chunk.measurements),
-            ("information", chunk.information),
+            ("edge_from", graph.from_ids),
+            ("edge_to", graph.to_ids),
+            ("measurement", graph.measurements),
+            ("information", graph.information),
         ]
     )
 
@@ -336,7 +346,8 @@ def decode_chunk(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, 
 
     Raises:
         MessageError: the layout does not follow the contract.
-        GraphError: the edges are invalid (see :class:`PoseGraphChunk`).
+        GraphError: the edges are invalid (see :class:`PoseGraph`; the message names
+            ``pose-graph chunk <seq>``).
     """
     what = "pose_graph message"
     seg = _segments(labels, sizes, data, data_offset, CHUNK_SEGMENTS, what)
@@ -350,12 +361,12 @@ def decode_chunk(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, 
     for name, size in expected.items():
         if seg[name].size != size:
             raise MessageError(f"{what}: segment {name!r} has {seg[name].size} values, {k} edges need {size}")
-    chunk = PoseGraphChunk(
-        dim,
-        seq,
+    graph = PoseGraph.from_edges(
         _ints(seg["edge_from"], "edge_from", what),
         _ints(seg["edge_to"], "edge_to", what),
         seg["measurement"].reshape(k, p).copy(),
         seg["information"].reshape(k, p, p).copy(),
+        dim=dim,
+        name=f"pose-graph chunk {seq}",
     )
-    return ChunkMessage(chunk, Stamp(int(h[4]), int(h[5])))
+    return ChunkMessage(graph, seq, Stamp(int(h[4]), int(h[5])))

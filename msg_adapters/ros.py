@@ -13,7 +13,7 @@ from msg_adapters.layout import Encoded
 def to_msg(encoded: Encoded) -> Float64MultiArray:
     """Return a ``std_msgs/Float64MultiArray`` carrying ``encoded``."""
     msg = Float64MultiArray()
-    msg.layout.dim = [MultiArrayDimension(label=k, size=s, stride=s) for k, s in zip(encoded.labels, encoded.sizes)]
+    msg.layout.dim = [MultiArrayDimension(label=k, size=s, stride=s) for k, s in zip(encoded.labels, encoded.sizes, strict=True)]
     msg.layout.data_offset = 0
     msg.data = array.array("d", encoded.data.tobytes())
     return msg

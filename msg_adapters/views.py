@@ -6,6 +6,9 @@ the robot's orientation in the world (what ROS poses carry) is ``R^T``.
 
 from __future__ import annotations
 
+import functools
+from typing import NamedTuple
+
 import numpy as np
 import numpy.typing as npt
 from builtin_interfaces.msg import Time
@@ -16,6 +19,7 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
+from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import rotation
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
 
@@ -133,3 +137,43 @@ def feature_map_covariances(feature_map: FeatureMap, max_state: int) -> dict[int
     expand = expansion_matrix(d, feature_map.all_ids.size).toarray()
     cov = expand @ np.linalg.inv(to_dense(feature_map.info)) @ expand.T
     return {int(f): cov[k * d : (k + 1) * d, k * d : (k + 1) * d] for k, f in enumerate(feature_map.all_ids.tolist())}
+
+
+class MapViews(NamedTuple):
+    """The viewing messages of a joined map (``None``: the map type has no such view)."""
+
+    path: Path | None
+    markers: MarkerArray
+    pose: PoseStamped | None
+
+
+@functools.singledispatch
+def map_views(joined: object, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+    """Return the viewing messages of a joined map, in ``frame_id``.
+
+    Args:
+        joined: the map (a type registered below).
+        first_pose_id: the pose whose frame ``frame_id`` names (pose maps are moved there).
+        frame_id: ``header.frame_id`` of the messages.
+        stamp: their stamp.
+        ellipse_max_state: no covariance ellipses above this many state scalars.
+
+    Raises:
+        TypeError: no views are registered for the map's type.
+    """
+    raise TypeError(f"no views for {type(joined).__name__}")
+
+
+@map_views.register
+def _(joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+    first = joined.frame_id if first_pose_id is None else first_pose_id
+    in_first = joined if joined.frame_id == first else change_frame(joined, first)
+    markers = feature_markers(in_first, frame_id, stamp, feature_covariances(in_first, ellipse_max_state))
+    pose = current_pose_msg(in_first, joined.end_id, frame_id, stamp) if joined.end_id is not None else None
+    return MapViews(path_msg(in_first, frame_id, stamp), markers, pose)
+
+
+@map_views.register
+def _(joined: FeatureMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+    covs = feature_map_covariances(joined, ellipse_max_state)
+    return MapViews(None, point_markers(joined.dim, joined.positions(), frame_id, stamp, covs), None)

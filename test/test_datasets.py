@@ -7,6 +7,9 @@ import tarfile
 import numpy as np
 import pytest
 
+from linear_slam_ros.core.errors import DatasetError, InvalidMapError
+from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
 from linear_slam_ros.io.datasets import (
     MapKind,
     detect_kind,
@@ -19,9 +22,6 @@ from linear_slam_ros.io.datasets import (
     write_features,
     write_poses,
 )
-from linear_slam_ros.core.errors import DatasetError, InvalidMapError
-from linear_slam_ros.core.local_map import FEATURE, POSE
-from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
 
 PF_TEXT = """0
 5
@@ -95,7 +95,7 @@ def test_write_then_read_round_trip(kind, tmp_path, rng):
     write_dataset(maps, tmp_path / "ds", kind)
     back = read_dataset(tmp_path / "ds")
     assert back.kind is kind and len(back.maps) == len(maps)
-    for a, b in zip(maps, back.maps):
+    for a, b in zip(maps, back.maps, strict=True):
         np.testing.assert_array_equal(a.ids, b.ids)
         np.testing.assert_array_equal(a.x, b.x)
         np.testing.assert_array_equal(a.info_dense(), b.info_dense())

@@ -7,9 +7,14 @@ import json
 import numpy as np
 import pytest
 
-from linear_slam_ros.feature_only import maps as fm
 from linear_slam_ros.core.errors import GeometryError
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world, noisy_local_maps
+from linear_slam_ros.feature_only.conversion import to_feature_only
+from linear_slam_ros.feature_only.frames import change_feature_frame, choose_frame_features, frame_rotation, reframe_features
+from linear_slam_ros.feature_only.joining import common_features, join_feature_maps, join_features_dc, join_features_sequential
+from linear_slam_ros.feature_only.maps import FeatureMap, n_frame_features
+from linear_slam_ros.feature_only.precondition import precondition
+from linear_slam_ros.feature_only.refine import refine_features
 from support import CACHE, dataset_archive
 
 
@@ -19,8 +24,8 @@ def _fd_jacobian(dim, full, rows, eps=1e-6):
     for k in range(flat.size):
         dp = np.zeros_like(flat)
         dp[k] = eps
-        plus, _ = fm.reframe_features(dim, (flat + dp).reshape(full.shape), rows)
-        minus, _ = fm.reframe_features(dim, (flat - dp).reshape(full.shape), rows)
+        plus, _ = reframe_features(dim, (flat + dp).reshape(full.shape), rows)
+        minus, _ = reframe_features(dim, (flat - dp).reshape(full.shape), rows)
         cols.append((plus - minus).ravel() / (2 * eps))
     return np.stack(cols, -1)
 
@@ -28,8 +33,8 @@ def _fd_jacobian(dim, full, rows, eps=1e-6):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_frame_definition_and_jacobian(dim, rng):
     full = rng.normal(size=(6, dim)) * 5
-    rows = [2, 4, 0][: fm.n_frame_features(dim)]
-    new, jac = fm.reframe_features(dim, full, rows)
+    rows = [2, 4, 0][: n_frame_features(dim)]
+    new, jac = reframe_features(dim, full, rows)
     np.testing.assert_allclose(new[2], np.zeros(dim), atol=1e-12)  # F_O at the origin
     np.testing.assert_allclose(new[4][1:], np.zeros(dim - 1), atol=1e-12)  # F_X on the x axis
     assert new[4][0] > 0
@@ -42,10 +47,10 @@ def test_frame_definition_and_jacobian(dim, rng):
 def test_change_of_feature_frame_round_trip(dim):
     world = make_world(dim, 12, 20, np.random.default_rng(1))
     local = noisy_local_maps(world, np.random.default_rng(2), steps_per_map=6, sensor_range=9)[0]
-    fmap = fm.to_feature_only(local)
-    other = tuple(int(i) for i in fmap.ids[: fm.n_frame_features(dim)])
-    there = fm.change_feature_frame(fmap, other)
-    back = fm.change_feature_frame(there, fmap.frame_ids)
+    fmap = to_feature_only(local)
+    other = tuple(int(i) for i in fmap.ids[: n_frame_features(dim)])
+    there = change_feature_frame(fmap, other)
+    back = change_feature_frame(there, fmap.frame_ids)
     np.testing.assert_array_equal(back.ids, fmap.ids)
     np.testing.assert_allclose(back.x, fmap.x, atol=1e-10)
     np.testing.assert_allclose(back.info, fmap.info, rtol=1e-8, atol=1e-6)
@@ -53,25 +58,26 @@ def test_change_of_feature_frame_round_trip(dim):
 
 def test_degenerate_frame_features_are_rejected():
     with pytest.raises(GeometryError, match="frame features F_O and F_X coincide"):
-        fm.frame_rotation(2, np.array([1.0, 2.0]), np.array([1.0, 2.0]))
+        frame_rotation(2, np.array([1.0, 2.0]), np.array([1.0, 2.0]))
     with pytest.raises(GeometryError, match="F_O, F_X, F_Y are collinear"):
-        fm.frame_rotation(3, np.zeros(3), np.array([1.0, 1, 1]), np.array([2.0, 2, 2]))
+        frame_rotation(3, np.zeros(3), np.array([1.0, 1, 1]), np.array([2.0, 2, 2]))
     with pytest.raises(GeometryError, match="F_O, F_X, F_Y are collinear or coincident"):
-        fm.frame_rotation(3, np.zeros(3), np.array([1.0, 0, 0]), np.zeros(3))
+        frame_rotation(3, np.zeros(3), np.array([1.0, 0, 0]), np.zeros(3))
     with pytest.raises(GeometryError, match="a 3D frame needs 3 common features, only 2 available"):
-        fm.choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3)}, [1, 2])
+        choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3)}, [1, 2])
     with pytest.raises(GeometryError, match="common features \\[1, 2, 3\\] are collinear"):
-        fm.choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3), 3: 2 * np.ones(3)}, [1, 2, 3])
+        choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3), 3: 2 * np.ones(3)}, [1, 2, 3])
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("joiner", [fm.join_features_sequential, fm.join_features_dc])
+@pytest.mark.parametrize("joiner", [join_features_sequential, join_features_dc])
 def test_noise_free_maps_give_the_truth(dim, joiner):
     rng = np.random.default_rng(3)
     world = make_world(dim, 24, 40, rng)
-    maps = fm.precondition(exact_local_maps(world, rng, poses_per_map=3, sensor_range=9))
-    joined = joiner([fm.to_feature_only(m) for m in maps])
-    truth, _ = fm.reframe_features(dim, np.array([world.features[int(f)] for f in joined.all_ids]), list(range(fm.n_frame_features(dim))))
+    maps = precondition(exact_local_maps(world, rng, poses_per_map=3, sensor_range=9))
+    joined = joiner([to_feature_only(m) for m in maps])
+    true_features = np.array([world.features[int(f)] for f in joined.all_ids])
+    truth, _ = reframe_features(dim, true_features, list(range(n_frame_features(dim))))
     np.testing.assert_allclose(joined.full(), truth, atol=1e-9)
 
 
@@ -79,13 +85,13 @@ def test_noise_free_maps_give_the_truth(dim, joiner):
 def test_maps_join_in_the_frame_of_the_longest_baseline_common_features(dim):
     world = make_world(dim, 12, 30, np.random.default_rng(5))
     locals_ = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=6, sensor_range=9)
-    a, b = fm.to_feature_only(locals_[0]), fm.to_feature_only(locals_[1])
-    common = fm.common_features(a, b)
-    b_frame = tuple(common[-fm.n_frame_features(dim):])
-    b = fm.change_feature_frame(b, b_frame)  # b's own frame is common: the join must not keep it
-    longest = fm.choose_frame_features(dim, a.positions(), common)
+    a, b = to_feature_only(locals_[0]), to_feature_only(locals_[1])
+    common = common_features(a, b)
+    b_frame = tuple(common[-n_frame_features(dim):])
+    b = change_feature_frame(b, b_frame)  # b's own frame is common: the join must not keep it
+    longest = choose_frame_features(dim, a.positions(), common)
     assert longest != b_frame
-    joined = fm.join_feature_maps(a, b)
+    joined = join_feature_maps(a, b)
     assert joined.frame_ids == longest
 
 
@@ -94,15 +100,15 @@ def test_lemma_1_for_feature_only_maps(dim):
     """Joining two feature-only maps by Gauss-Newton in a new frame equals linear LS + transform."""
     world = make_world(dim, 12, 30, np.random.default_rng(5))
     locals_ = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=6, sensor_range=9, sigma_observation=0.1)
-    a, b = fm.to_feature_only(locals_[0]), fm.to_feature_only(locals_[1])
-    common = fm.common_features(a, b)
-    frame = fm.choose_frame_features(dim, a.positions(), common)
-    a, b = fm.change_feature_frame(a, frame), fm.change_feature_frame(b, frame)
-    linear = fm.join_feature_maps(a, b)  # the linear LS in the shared frame
-    new_frame = tuple(int(f) for f in linear.ids[-fm.n_frame_features(dim):])
-    expected = fm.change_feature_frame(linear, new_frame)  # ... plus the transform
-    start = fm.FeatureMap(dim, expected.frame_ids, expected.ids, expected.x + 0.01, expected.info, "start")
-    optimum = fm.refine_features(start, [a, b]).map
+    a, b = to_feature_only(locals_[0]), to_feature_only(locals_[1])
+    common = common_features(a, b)
+    frame = choose_frame_features(dim, a.positions(), common)
+    a, b = change_feature_frame(a, frame), change_feature_frame(b, frame)
+    linear = join_feature_maps(a, b)  # the linear LS in the shared frame
+    new_frame = tuple(int(f) for f in linear.ids[-n_frame_features(dim):])
+    expected = change_feature_frame(linear, new_frame)  # ... plus the transform
+    start = FeatureMap(dim, expected.frame_ids, expected.ids, expected.x + 0.01, expected.info, "start")
+    optimum = refine_features(start, [a, b]).map
     np.testing.assert_allclose(optimum.x, expected.x, atol=1e-8)
     scale = np.abs(expected.info).max()
     np.testing.assert_allclose(np.asarray(optimum.info.toarray()) / scale, np.asarray(expected.info) / scale, atol=1e-8)

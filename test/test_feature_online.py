@@ -5,13 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.feature_only import maps as fm
 from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
-from linear_slam_ros.joiner.joiner import Joiner, global_feature_map_of, global_map_of
 from linear_slam_ros.core.local_map import FEATURE, POSE
-from linear_slam_ros.evaluation.runner import JoinMethod, MapType
+from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.feature_only.conversion import to_feature_only
+from linear_slam_ros.feature_only.joining import join_features_dc, join_features_sequential
+from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
+from linear_slam_ros.feature_only.precondition import precondition
+from linear_slam_ros.joiner.joiner import Joiner, global_feature_map_of, global_map_of
 
 
 def _maps(dim: int, n_poses: int = 24, seed: int = 31, steps: int = 3, sensor_range: float = 7.0):
@@ -20,18 +23,19 @@ def _maps(dim: int, n_poses: int = 24, seed: int = 31, steps: int = 3, sensor_ra
 
 
 def _run(maps, method):
-    state = FeatureJoinState(method)
+    strategy = get_strategy(method, MapType.FEATURE_ONLY)
+    state = strategy.empty()
     for m in maps:
-        state = feature_step(state, m)
+        state = strategy.step(state, m)
     return state
 
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_online_sequential_equals_the_batch_pipeline(dim):
     maps = _maps(dim, steps=1, sensor_range=4.0)
-    groups = fm.precondition(maps)
+    groups = precondition(maps)
     assert 2 < len(groups) < len(maps)  # some submaps were merged, some groups closed
-    batch = fm.join_features_sequential([fm.to_feature_only(g) for g in groups])
+    batch = join_features_sequential([to_feature_only(g) for g in groups])
     online = feature_result(_run(maps, JoinMethod.SEQUENTIAL))
     assert online.frame_ids == batch.frame_ids
     np.testing.assert_array_equal(online.ids, batch.ids)
@@ -40,12 +44,12 @@ def test_online_sequential_equals_the_batch_pipeline(dim):
 
 def test_online_dc_equals_batch_dc_on_a_power_of_two():
     maps = _maps(2, n_poses=60, steps=2)
-    groups = fm.precondition(maps)
+    groups = precondition(maps)
     n = 1 << (len(groups).bit_length() - 1)
     # the maps that make up the first n groups: stop before the map that closes group n + 1
     closing = [m for m in maps if any(g.frame_id == m.frame_id for g in groups)]
     prefix = maps[: maps.index(closing[n])] if n < len(groups) else maps
-    batch = fm.join_features_dc([fm.to_feature_only(g) for g in groups[:n]])
+    batch = join_features_dc([to_feature_only(g) for g in groups[:n]])
     online = feature_result(_run(prefix, JoinMethod.ONLINE_DC))
     assert online.frame_ids == batch.frame_ids
     np.testing.assert_allclose(online.x, batch.x, rtol=0, atol=1e-12)
@@ -59,7 +63,7 @@ def test_the_open_group_waits_for_a_feature_frame():
         info=maps[0].info_dense()[: maps[0].offsets[2], : maps[0].offsets[2]] + 0.0,
     )
     assert (one_feature.kinds == POSE).sum() == 1 and (one_feature.kinds == FEATURE).sum() == 1
-    state = feature_step(FeatureJoinState(JoinMethod.SEQUENTIAL), one_feature)
+    state = feature_step(FeatureJoinState(), one_feature, divide_and_conquer=False)
     assert feature_result(state) is None  # one feature defines no frame yet
 
 
@@ -68,9 +72,9 @@ def test_bad_submaps_are_rejected_and_leave_the_state_unchanged():
     state = _run(maps[:3], JoinMethod.SEQUENTIAL)
     pose_only = exact_pose_graph_maps(make_world(2, 10, 0, np.random.default_rng(1)), np.random.default_rng(2))[0]
     with pytest.raises(InvalidMapError, match="holds no feature: map_type feature-only joins pose-feature maps"):
-        feature_step(state, pose_only)
+        feature_step(state, pose_only, divide_and_conquer=False)
     with pytest.raises(InvalidMapError, match="is 3D, the global map is 2D"):
-        feature_step(state, _maps(3)[0])
+        feature_step(state, _maps(3)[0], divide_and_conquer=False)
     before = feature_result(state)
     j = Joiner(JoinMethod.SEQUENTIAL, MapType.FEATURE_ONLY)
     for seq, m in enumerate(maps[:3], start=1):
@@ -85,7 +89,7 @@ def test_joiner_in_feature_only_mode():
     for seq, m in enumerate(maps, start=1):
         assert j.offer(m, seq) == [seq]
     result = global_feature_map_of(j.state)
-    batch = fm.join_features_dc([fm.to_feature_only(g) for g in fm.precondition(maps)])
+    batch = join_features_dc([to_feature_only(g) for g in precondition(maps)])
     np.testing.assert_array_equal(np.sort(result.all_ids), np.sort(batch.all_ids))
     with pytest.raises(InvalidMapError, match="a feature-only joiner has no pose frame"):
         global_map_of(j.state)

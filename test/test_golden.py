@@ -13,7 +13,8 @@ from linear_slam_ros.core.local_map import FEATURE, POSE
 from linear_slam_ros.evaluation.metrics import rmse
 from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.objective import chi2
-from linear_slam_ros.evaluation.runner import JoinMethod, run_join
+from linear_slam_ros.evaluation.runner import run_join
+from linear_slam_ros.joiner.strategy import JoinMethod
 
 # dataset: (D&C chi2, Nonlinear LS chi2, RMSE pose, RMSE feature) from the paper
 PAPER = {
@@ -54,7 +55,9 @@ def test_exact_sequential_matches_the_reference_program(name, read_benchmark):
     assert chi2(run.result, dataset.maps) == pytest.approx(SEQUENTIAL[name], rel=0.005)
 
 
-@pytest.mark.parametrize("name", _params(["VicPark_200_local_maps", "Intel", "8240_data_50_local_maps", "manhattanOlson3500", "sphere2500"]))
+@pytest.mark.parametrize(
+    "name", _params(["VicPark_200_local_maps", "Intel", "8240_data_50_local_maps", "manhattanOlson3500", "sphere2500"])
+)
 def test_online_dc_within_one_percent_of_batch(name, read_benchmark):
     dataset = read_benchmark(name)
     batch = chi2(run_join(dataset.maps, JoinMethod.DC).result, dataset.maps)

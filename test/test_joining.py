@@ -8,23 +8,14 @@ import pytest
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
-from linear_slam_ros.joining.pairwise import (
-    OnlineDCState,
-    align_frames,
-    express_in,
-    join_divide_and_conquer,
-    join_in_shared_frame,
-    join_online_dc,
-    join_pair,
-    join_sequential_information,
-    online_dc_result,
-    online_dc_step,
-)
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
 from linear_slam_ros.evaluation.objective import chi2
-from linear_slam_ros.joining.sequential import join_sequential
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_map, exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.joining.divide_conquer import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
+from linear_slam_ros.joining.pairwise import align_frames, join_in_shared_frame, join_pair
+from linear_slam_ros.joining.sequential import join_sequential
+from support import join_online_dc, join_sequential_information
 
 JOINERS = {
     "sequential": join_sequential,
@@ -53,10 +44,10 @@ def test_noise_free_pose_feature_maps_give_the_truth(dim, method, first_frame, r
     maps = exact_local_maps(world, rng, poses_per_map=3, first_frame=first_frame)
     joined = JOINERS[method](maps)
     assert joined.frame_id == 30  # robocentric: the last end pose
-    in_first = express_in(joined, 0)
+    in_first = change_frame(joined, 0)
     assert _max_error(in_first, world.truth()) < 1e-9
     assert chi2(joined, maps) < 1e-12
-    refined = express_in(refine(joined, maps).map, 0)
+    refined = change_frame(refine(joined, maps).map, 0)
     assert _max_error(refined, world.truth()) < 1e-9
 
 
@@ -65,7 +56,7 @@ def test_noise_free_pose_feature_maps_give_the_truth(dim, method, first_frame, r
 def test_noise_free_pose_graphs_give_the_truth(dim, method, rng):
     world = make_world(dim, 40, 0, rng, loops=1.5)  # orientations wrap past pi
     maps = exact_pose_graph_maps(world, rng)
-    joined = express_in(JOINERS[method](maps), 0)
+    joined = change_frame(JOINERS[method](maps), 0)
     assert _max_error(joined, world.truth()) < 1e-9
     assert chi2(joined, maps) < 1e-12
 
@@ -117,11 +108,16 @@ def test_pose_only_common_angles_are_wrapped(rng):
 def test_frame_error_names_both_ids(rng):
     world = make_world(2, 12, 10, rng)
     maps = exact_local_maps(world, rng, 2)
-    with pytest.raises(FrameError, match="map 'exact_4' \\(frame pose 6\\) does not hold pose 2, the end pose of map 'exact_1' \\(frame pose 0\\)"):
+    with pytest.raises(
+        FrameError,
+        match="map 'exact_4' \\(frame pose 6\\) does not hold pose 2, the end pose of map 'exact_1' \\(frame pose 0\\)",
+    ):
         join_pair(maps[0], maps[3])
     with pytest.raises(FrameError, match="frame of pose 6, which is not in map .* \\(frame pose 0\\).*pose 0 is not in"):
         align_frames(maps[0], maps[3])
-    with pytest.raises(FrameError, match="submap 'exact_4' is in the frame of pose 6 and does not hold pose 2, the end pose of the global map"):
+    with pytest.raises(
+        FrameError, match="submap 'exact_4' is in the frame of pose 6 and does not hold pose 2, the end pose of the global map"
+    ):
         online_dc_step(online_dc_step(OnlineDCState(), maps[0]), maps[3])
 
 

@@ -48,7 +48,10 @@ def test_sparse_information_is_accepted():
         (dict(kinds=np.array([POSE], dtype=np.int8)), "ids and kinds must be 1-D of equal length"),
         (dict(kinds=np.array([POSE, 5], dtype=np.int8)), "variable kind must be 0 \\(pose\\) or 1 \\(feature\\), got 5"),
         (dict(ids=np.array([-1, 7])), "pose ids must be >= 0, got -1"),
-        (dict(ids=np.array([1, 1]), kinds=np.array([POSE, POSE], dtype=np.int8), x=np.zeros(6), info=np.eye(6)), "duplicate variable pose 1"),
+        (
+            dict(ids=np.array([1, 1]), kinds=np.array([POSE, POSE], dtype=np.int8), x=np.zeros(6), info=np.eye(6)),
+            "duplicate variable pose 1",
+        ),
         (dict(frame_id=1, end_id=None), "frame pose 1 is also a variable"),
         (dict(end_id=9), "end pose 9 is neither the frame pose nor a pose of the map"),
         (dict(x=np.zeros(4)), "state has shape \\(4,\\), the variables need \\(5,\\)"),

@@ -7,11 +7,13 @@ import pytest
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
-from linear_slam_ros.evaluation.metrics import latency_summary, rmse
+from linear_slam_ros.core.timing import latency_summary
+from linear_slam_ros.evaluation.metrics import rmse
 
 
 def _m(x, frame=0, name="m"):
-    return LocalMap(2, frame, None, np.array([1, 5]), np.array([POSE, FEATURE], np.int8), np.asarray(x, float), np.eye(5), name=name)
+    ids, kinds = np.array([1, 5]), np.array([POSE, FEATURE], np.int8)
+    return LocalMap(2, frame, None, ids, kinds, np.asarray(x, float), np.eye(5), name=name)
 
 
 def test_rmse_per_coordinate_known_values():

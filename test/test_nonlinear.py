@@ -7,13 +7,14 @@ import pytest
 import scipy.stats
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
-from linear_slam_ros.joining.pairwise import express_in, join_divide_and_conquer
+from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE, POSE
 from linear_slam_ros.evaluation.metrics import nees
 from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
 from linear_slam_ros.evaluation.objective import MapObjective, chi2
-from linear_slam_ros.joining.sequential import join_sequential
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
+from linear_slam_ros.joining.sequential import join_sequential
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -24,7 +25,7 @@ def test_nees_within_95_percent_bounds(dim, joiner):
     values = []
     for run in range(8):
         maps = noisy_local_maps(world, np.random.default_rng(1000 + run), steps_per_map=4)
-        result = nees(express_in(joiner(maps), 0), world.truth())
+        result = nees(change_frame(joiner(maps), 0), world.truth())
         values.append(result.nees)
     dof, runs = result.dof, len(values)
     lower = scipy.stats.chi2.ppf(0.025, dof * runs) / runs
@@ -48,15 +49,15 @@ def test_objective_rejects_unknown_variables():
     maps = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=2)
     part = join_divide_and_conquer(maps[:2])
     with pytest.raises(FrameError, match="variable 6 of map 'noisy_3' is not in map 'global'"):
-        MapObjective.build(express_in(part, 0), maps)
+        MapObjective.build(change_frame(part, 0), maps)
     with pytest.raises(FrameError, match="is not in map"):
-        gauss_newton(express_in(part, 0), maps[:3])
+        gauss_newton(change_frame(part, 0), maps[:3])
 
 
 def test_nees_needs_truth_for_every_variable():
     world = make_world(2, 8, 6, np.random.default_rng(5))
     maps = noisy_local_maps(world, np.random.default_rng(6), steps_per_map=2)
-    joined = express_in(join_divide_and_conquer(maps), 0)
+    joined = change_frame(join_divide_and_conquer(maps), 0)
     truth = world.truth()
     truth.pop((POSE, 4))
     with pytest.raises(InvalidMapError, match="no ground truth for pose 4"):

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from linear_slam_ros.ros.node import PARAMETERS
+from linear_slam_ros.joiner.config import parameter_declarations
 from msg_adapters import decode_map
 from msg_adapters.ros import parts
 
@@ -25,17 +25,21 @@ def _table() -> dict[str, tuple[str, str]]:
     return rows
 
 
+PARAMETERS = {d.name: d for d in parameter_declarations()}
+"""The node declares exactly these (``JoinerNode.__init__``)."""
+
+
 def test_parameter_table_matches_declarations():
     table = _table()
     assert set(table) == set(PARAMETERS)
-    for name, (default, _desc, read_only, _range) in PARAMETERS.items():
-        assert table[name] == (str(default), "yes" if read_only else "no"), name
+    for name, decl in PARAMETERS.items():
+        assert table[name] == (str(decl.default), "yes" if decl.spec.read_only else "no"), name
 
 
 def test_config_file_sets_declared_parameters_to_their_defaults():
     params = yaml.safe_load(CONFIG.read_text())["/**/joiner"]["ros__parameters"]
     assert set(params) == set(PARAMETERS)
-    assert {k: v for k, v in params.items()} == {k: v[0] for k, v in PARAMETERS.items()}
+    assert {k: v for k, v in params.items()} == {k: d.default for k, d in PARAMETERS.items()}
 
 
 def test_front_end_example_produces_a_valid_local_map():

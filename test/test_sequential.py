@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
-from linear_slam_ros.joining.pairwise import join_sequential_information
-from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
+from support import join_sequential_information
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -51,7 +51,9 @@ def test_step_is_pure_and_rejects_a_foreign_frame(rng):
     maps = noisy_local_maps(world, rng, steps_per_map=2)
     state = sequential_step(sequential_step(SequentialState(), maps[0]), maps[1])
     snapshot = (state.global_map.x.copy(), state.global_map.cov.copy())
-    with pytest.raises(FrameError, match="submap 'noisy_5' is in the frame of pose 8, which is not in the global map \\(frame pose 4\\)"):
+    with pytest.raises(
+        FrameError, match="submap 'noisy_5' is in the frame of pose 8, which is not in the global map \\(frame pose 4\\)"
+    ):
         sequential_step(state, maps[4])
     sequential_step(state, maps[2])  # a successful step leaves the input state untouched too
     np.testing.assert_array_equal(state.global_map.x, snapshot[0])

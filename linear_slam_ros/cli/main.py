@@ -14,15 +14,17 @@ from pathlib import Path
 from typing import Sequence
 
 
-from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, write_features, write_poses
 from linear_slam_ros.core.errors import LinearSlamError
-from linear_slam_ros.feature_only.maps import FeatureMap
-from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.core.local_map import FEATURE, LocalMap
-from linear_slam_ros.evaluation.metrics import latency_summary
-from linear_slam_ros.evaluation.nonlinear import refine
-from linear_slam_ros.evaluation.objective import chi2
-from linear_slam_ros.evaluation.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
+from linear_slam_ros.evaluation.benchmark import run_benchmark
+from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
+from linear_slam_ros.evaluation.objective import MapObjective, chi2
+from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join
+from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, resolve_dataset_dir, write_poses
+from linear_slam_ros.io.results import write_map, write_report, write_result
+from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
 
 logger = logging.getLogger("linear_slam_ros")
 
@@ -36,27 +38,9 @@ def _progress(total: int, desc: str):  # type: ignore[no-untyped-def]
     return tqdm(total=total, desc=desc, unit="map", disable=None if total >= PROGRESS_MIN_MAPS else True, leave=False)
 
 
-def write_result(out_dir: Path, joined: LocalMap, origin_id: int) -> LocalMap:
-    """Write ``poses.txt`` and (with features) ``features.txt`` in the frame of ``origin_id``."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    in_origin = joined if joined.frame_id == origin_id else change_frame(joined, origin_id)
-    write_poses(out_dir / "poses.txt", in_origin, origin_id)
-    if (in_origin.kinds == FEATURE).any():
-        write_features(out_dir / "features.txt", in_origin)
-    return in_origin
-
-
-def write_feature_result(out_dir: Path, feature_map: FeatureMap) -> None:
-    """Write ``features.txt`` (``id x y [z]`` per feature) in a feature-only map's frame."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with open(out_dir / "features.txt", "w") as fh:
-        for fid, pos in sorted(feature_map.positions().items()):
-            fh.write(f"{fid} " + " ".join(f"{v:.17g}" for v in pos) + "\n")
-
-
 def join_dataset(dataset: Dataset, method: JoinMethod) -> JoinRun:
-    """Join a dataset's local maps with a progress bar on long runs."""
-    n_steps = len(dataset.maps) - 1 if method is JoinMethod.DC else len(dataset.maps)
+    """Join a dataset's local maps (as they are) with a progress bar on long runs."""
+    n_steps = len(dataset.maps) if get_strategy(method).run_step == PER_SUBMAP else len(dataset.maps) - 1
     with _progress(n_steps, f"{method.value} {dataset.name}") as bar:
         return run_join(dataset.maps, method, progress=bar.update)
 
@@ -71,7 +55,7 @@ def report_for(run: JoinRun, dataset: Dataset, chi2_value: float) -> dict[str, o
         "state_dim": run.result.state_dim,
         "seconds": run.seconds,
         **latency_summary(run.step_seconds),
-        "latency_unit": "per pairwise join" if run.method is JoinMethod.DC else "per submap",
+        "latency_unit": run.step_unit,
         "peak_rss_mb": peak_rss_mb(),
         "chi2": chi2_value,
         "info_nnz": run.result.info_nnz(),
@@ -89,16 +73,17 @@ def cmd_refine(args: argparse.Namespace) -> int:
 
 
 def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
+    config = JoinerConfig.from_mapping({"mode": args.method, "map_type": args.map_type}, online=False)
     dataset = read_dataset(args.dataset, kind=args.kind)
-    if args.map_type == "feature-only":
+    if config.map_type is MapType.FEATURE_ONLY:
         return _join_feature_only(args, dataset, refine_too)
-    method = JoinMethod(args.method)
+    method = config.mode
     run = join_dataset(dataset, method)
     origin = dataset.maps[0].frame_id
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin)
         report = report_for(run, dataset, chi2(in_origin, dataset.maps))
-        _write_report(args.out, report)
+        write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
             run.seconds, report["chi2"],
@@ -119,7 +104,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
             "state_dim": refined.map.state_dim,
         }
     )
-    _write_report(args.out, report)
+    write_report(args.out, report)
     logger.info("%s: Nonlinear LS chi2 %.3f after %d iterations", dataset.name, refined.chi2, refined.iterations)
     return 0
 
@@ -129,13 +114,10 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
     if not dataset.kind.has_features:
         logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
         return 2
-    from linear_slam_ros.feature_only.online import run_feature_join
-
-    run = run_feature_join(dataset.maps, JoinMethod(args.method), refine_too)
+    run = run_feature_join(dataset.maps, args.method, refine_too)
     report: dict[str, object] = {"dataset": dataset.name, "kind": dataset.kind.value, **run.report}
-    out_map = run.refined if run.refined is not None else run.joined
-    write_feature_result(args.out, out_map)
-    _write_report(args.out, report)
+    write_map(run.refined if run.refined is not None else run.joined, args.out, None)
+    write_report(args.out, report)
     logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
                 dataset.name, args.method, len(dataset.maps), report["n_feature_maps"], report["seconds"], report["chi2"])
     return 0
@@ -143,10 +125,6 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
 
 def cmd_lago(args: argparse.Namespace) -> int:
     """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine."""
-    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps, lago, read_g2o
-    from linear_slam_ros.evaluation.nonlinear import gauss_newton
-    from linear_slam_ros.evaluation.objective import MapObjective
-
     source = Path(args.graph)
     if source.suffix == ".g2o":
         graph = read_g2o(source)
@@ -170,15 +148,13 @@ def cmd_lago(args: argparse.Namespace) -> int:
         report.update({"nls_chi2": refined.chi2, "nls_iterations": refined.iterations, "nls_seconds": time.perf_counter() - t0})
     args.out.mkdir(parents=True, exist_ok=True)
     write_poses(args.out / "poses.txt", out_map, out_map.frame_id)
-    _write_report(args.out, report)
+    write_report(args.out, report)
     logger.info("%s: LAGO chi2 %.3f in %.3f s", source.name, report["chi2"], result.seconds)
     return 0
 
 
 def cmd_unpack(args: argparse.Namespace) -> int:
     """Unpack every ``*.tar.xz`` dataset of a folder into the cache (idempotent)."""
-    from linear_slam_ros.io.datasets import resolve_dataset_dir
-
     archives = sorted(Path(args.datasets_dir).glob("*.tar.xz"))
     if not archives:
         logger.error("no *.tar.xz datasets in %s", args.datasets_dir)
@@ -190,15 +166,8 @@ def cmd_unpack(args: argparse.Namespace) -> int:
 
 def cmd_benchmark(args: argparse.Namespace) -> int:
     """Run the benchmark over every dataset (see :mod:`linear_slam_ros.evaluation.benchmark`)."""
-    from linear_slam_ros.evaluation.benchmark import run_benchmark
-
     run_benchmark(args.datasets_dir, args.out, methods=args.methods, only=args.only)
     return 0
-
-
-def _write_report(out_dir: Path, report: dict[str, object]) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "report.json").write_text(json.dumps(report, indent=2) + "\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -213,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--kind", choices=[k.value for k in MapKind], default=None, help="override the detected map kind")
         p.add_argument("--out", type=Path, required=True, help="output folder")
         p.add_argument(
-            "--map-type", choices=["as-is", "feature-only"], default="as-is",
+            "--map-type", choices=[t.value for t in MapType], default=MapType.AS_IS.value,
             help="feature-only: marginalise poses and join feature-only (D-SLAM) maps in feature-defined frames",
         )
 

@@ -33,3 +33,7 @@ class MessageError(LinearSlamError, ValueError):
 
 class GraphError(LinearSlamError, ValueError):
     """A pose graph is malformed: unknown poses, disconnected, bad information."""
+
+
+class ConfigError(LinearSlamError, ValueError):
+    """A configuration value (ROS parameter or command-line option) is not allowed."""

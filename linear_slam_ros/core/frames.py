@@ -226,10 +226,4 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     info = transform_information(local_map.info, reframe_jacobian(dim, x_new, layout))
     ids = local_map.ids.copy()
     ids[slot] = local_map.frame_id
-    moved = local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)
-    # same kinds, same layout: share the layout caches
-    moved.__dict__.update({k: local_map.__dict__[k] for k in _LAYOUT_CACHES if k in local_map.__dict__})
-    return moved
-
-
-_LAYOUT_CACHES = ("sizes", "offsets", "angles", "position_index", "angle_index")
+    return local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)  # same kinds: same layout

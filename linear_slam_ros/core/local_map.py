@@ -93,29 +93,35 @@ def to_csr(matrix: InfoMatrix) -> sp.csr_matrix:
     return sp.csr_matrix(matrix) if not sp.issparse(matrix) else matrix.tocsr()
 
 
-class VariableLayout:
-    """Layout helpers shared by maps: offsets, keys and index lookups of the variables.
+@dataclass(frozen=True, eq=False)
+class StateLayout:
+    """Where each variable's scalars sit in the state vector: an explicit, shareable cache.
 
-    Mixed into frozen dataclasses that define ``dim``, ``frame_id``, ``ids``, ``kinds``, ``x``
-    and ``name``.
+    Maps with the same ``(dim, kinds)`` (a map and the same map moved to another frame, the
+    steps of sequential joining) share one layout object, so its index arrays are computed once,
+    when first asked for.
+
+    Attributes:
+        dim: 2 or 3.
+        kinds: ``(m,)`` variable kinds, :data:`POSE` or :data:`FEATURE`.
+        known_sizes: ``(m,)`` the variables' sizes when the caller already has them.
+        known_offsets: ``(m,)`` their first state indices when the caller already has them.
     """
 
     dim: int
-    frame_id: int
-    ids: IntArray
     kinds: npt.NDArray[np.int8]
-    x: FloatArray
-    name: str
+    known_sizes: IntArray | None = dataclasses.field(default=None, repr=False)
+    known_offsets: IntArray | None = dataclasses.field(default=None, repr=False)
 
     @functools.cached_property
     def sizes(self) -> IntArray:
         """``(m,)`` number of scalars of each variable."""
-        return var_sizes(self.dim, self.kinds)
+        return self.known_sizes if self.known_sizes is not None else var_sizes(self.dim, self.kinds)
 
     @functools.cached_property
     def offsets(self) -> IntArray:
-        """``(m,)`` index of each variable's first scalar in :attr:`x`."""
-        return var_offsets(self.sizes)
+        """``(m,)`` index of each variable's first scalar in the state."""
+        return self.known_offsets if self.known_offsets is not None else var_offsets(self.sizes)
 
     @functools.cached_property
     def position_index(self) -> IntArray:
@@ -126,6 +132,52 @@ class VariableLayout:
     def angle_index(self) -> IntArray:
         """``(m_poses, a)`` state indices of every pose's angles, in state order."""
         return self.offsets[self.kinds == POSE][:, None] + np.arange(self.dim, self.dim + angle_size(self.dim))
+
+    @functools.cached_property
+    def angles(self) -> npt.NDArray[np.bool_]:
+        """``(n,)`` mask of the pose-angle scalars of the state."""
+        return angle_mask(self.dim, self.kinds)
+
+
+class VariableLayout:
+    """Layout helpers shared by maps: offsets, keys and index lookups of the variables.
+
+    Mixed into frozen dataclasses that define ``dim``, ``frame_id``, ``ids``, ``kinds``, ``x``,
+    ``name`` and ``layout`` (the :class:`StateLayout` of ``dim`` and ``kinds``).
+    """
+
+    dim: int
+    frame_id: int
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    x: FloatArray
+    name: str
+    layout: StateLayout
+
+    @property
+    def sizes(self) -> IntArray:
+        """``(m,)`` number of scalars of each variable."""
+        return self.layout.sizes
+
+    @property
+    def offsets(self) -> IntArray:
+        """``(m,)`` index of each variable's first scalar in :attr:`x`."""
+        return self.layout.offsets
+
+    @property
+    def position_index(self) -> IntArray:
+        """``(m, d)`` state indices of every variable's position (feature) or translation (pose)."""
+        return self.layout.position_index
+
+    @property
+    def angle_index(self) -> IntArray:
+        """``(m_poses, a)`` state indices of every pose's angles, in state order."""
+        return self.layout.angle_index
+
+    @property
+    def angles(self) -> npt.NDArray[np.bool_]:
+        """``(n,)`` mask of the pose-angle scalars of :attr:`x`."""
+        return self.layout.angles
 
     @functools.cached_property
     def keys(self) -> IntArray:
@@ -176,11 +228,6 @@ class VariableLayout:
             return np.arange(self.state_dim, dtype=np.int64)
         return scalar_indices(self.offsets, self.sizes, var_indices)
 
-    @functools.cached_property
-    def angles(self) -> npt.NDArray[np.bool_]:
-        """``(n,)`` mask of the pose-angle scalars of :attr:`x`."""
-        return angle_mask(self.dim, self.kinds)
-
     def pose(self, pose_id: int) -> FloatArray:
         """Return a copy of pose ``pose_id`` (``(3,)`` or ``(6,)``); the frame pose is the origin."""
         if pose_id == self.frame_id:
@@ -209,6 +256,8 @@ class LocalMap(VariableLayout):
             each feature ``x y [z]``, in metres and radians, in the frame of ``frame_id``.
         info: ``(n, n)`` symmetric positive-definite information matrix, dense or CSR.
         name: label used in error messages (e.g. ``"localmap_12"``).
+        layout: the state layout of ``dim`` and ``kinds`` (built when not given; pass one to
+            share it with a map of the same kinds).
     """
 
     dim: int
@@ -219,11 +268,13 @@ class LocalMap(VariableLayout):
     x: FloatArray
     info: InfoMatrix
     name: str = "map"
+    layout: StateLayout = dataclasses.field(default=None, repr=False)  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "ids", np.ascontiguousarray(self.ids, dtype=np.int64))
         object.__setattr__(self, "kinds", np.ascontiguousarray(self.kinds, dtype=np.int8))
         object.__setattr__(self, "x", np.ascontiguousarray(self.x, dtype=np.float64))
+        object.__setattr__(self, "layout", StateLayout(self.dim, self.kinds))
         self.validate()
 
     @classmethod
@@ -237,8 +288,12 @@ class LocalMap(VariableLayout):
         x: FloatArray,
         info: InfoMatrix,
         name: str = "map",
+        layout: StateLayout | None = None,
     ) -> "LocalMap":
-        """Build a map without validation (for values computed by the core itself)."""
+        """Build a map without validation (for values computed by the core itself).
+
+        ``layout`` is shared when given (it must be that of ``dim`` and ``kinds``).
+        """
         obj = object.__new__(cls)
         for field, value in (
             ("dim", dim),
@@ -249,14 +304,18 @@ class LocalMap(VariableLayout):
             ("x", x),
             ("info", info),
             ("name", name),
+            ("layout", layout if layout is not None else StateLayout(dim, kinds)),
         ):
             object.__setattr__(obj, field, value)
         return obj
 
     def replace(self, **changes: object) -> "LocalMap":
-        """Return a copy with some fields changed, without re-validating."""
+        """Return a copy with some fields changed, without re-validating (the layout is shared
+        unless ``dim`` or ``kinds`` change)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values.update(changes)
+        if "dim" in changes or "kinds" in changes:
+            values["layout"] = None
         return LocalMap.trusted(**values)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------------ validation

@@ -35,17 +35,18 @@ except ImportError:  # pragma: no cover
 
 logger = logging.getLogger(__name__)
 
-_trtrs = scipy.linalg.lapack.get_lapack_funcs("trtrs", dtype=np.float64)
+_trtrs = scipy.linalg.lapack.dtrtrs  # what get_lapack_funcs("trtrs", dtype=np.float64) returns
 
 FloatArray = npt.NDArray[np.float64]
-Backend = Literal["auto", "sksparse", "cholmod", "scipy"]
+SparseBackend = Literal["sksparse", "cholmod", "scipy"]
+Backend = Literal["auto", SparseBackend]
 
 DENSE_MAX = 120
 """Systems up to this size are solved densely (LAPACK beats sparse set-up costs there; tuned on
 Manhattan and VicPark6898 between 80 and 250)."""
 
 
-def backend_name() -> str:
+def backend_name() -> SparseBackend:
     """Return the sparse backend ``auto`` uses."""
     if _cholmod_cholesky is not None:
         return "sksparse"
@@ -66,7 +67,7 @@ def solve_dense_spd(matrix: FloatArray, rhs: FloatArray) -> FloatArray:
     return _solve_lower(lower, y, trans=1)
 
 
-def _solve_lower(lower: FloatArray, rhs: FloatArray, trans: int) -> FloatArray:
+def _solve_lower(lower: npt.NDArray[np.floating], rhs: FloatArray, trans: int) -> FloatArray:
     x, info = _trtrs(lower, rhs, lower=1, trans=trans)
     if info != 0:  # pragma: no cover - cannot happen after a successful Cholesky
         raise SolverError(f"triangular solve failed (LAPACK info {info})")
@@ -87,7 +88,7 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     """
     rhs = np.ascontiguousarray(rhs, dtype=np.float64)
     if backend == "auto":
-        backend = backend_name()  # type: ignore[assignment]
+        backend = backend_name()
     if backend == "sksparse":
         if _cholmod_cholesky is None:
             raise SolverError("backend 'sksparse' requested but scikit-sparse is not installed")
@@ -100,7 +101,8 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
             raise SolverError(f"information matrix of size {matrix.shape[0]} is not positive definite: {exc}") from None
         return factor(rhs)
     if backend == "cholmod" and _cholespy is not None:
-        csr = sp.csr_matrix(matrix)
+        # scipy-stubs: the csr_matrix overloads omit the bare sp.spmatrix (a mixin there; what sp.bmat returns)
+        csr = sp.csr_matrix(matrix)  # type: ignore[call-overload]
         csr.sum_duplicates()
         try:
             solver = _cholespy.CholeskySolverD(
@@ -133,6 +135,6 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
 
 def solve_spd(matrix: FloatArray | sp.spmatrix, rhs: FloatArray, backend: Backend = "auto") -> FloatArray:
     """Solve an SPD system, densely when ``matrix`` is an ``ndarray``, else sparsely."""
-    if sp.issparse(matrix):
-        return solve_sparse_spd(matrix, rhs, backend)
-    return solve_dense_spd(np.asarray(matrix), rhs)
+    if isinstance(matrix, np.ndarray) or not sp.issparse(matrix):  # an ndarray is never sparse
+        return solve_dense_spd(np.asarray(matrix), rhs)
+    return solve_sparse_spd(matrix, rhs, backend)

@@ -23,10 +23,12 @@ import numpy as np
 from linear_slam_ros.io.datasets import Dataset, read_dataset
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
-from linear_slam_ros.evaluation.metrics import latency_summary, rmse
+from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
+from linear_slam_ros.evaluation.metrics import rmse
 from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.objective import chi2
-from linear_slam_ros.evaluation.runner import JoinMethod, JoinRun, peak_rss_mb, run_join
+from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join
+from linear_slam_ros.joiner.strategy import JoinMethod
 
 logger = logging.getLogger(__name__)
 
@@ -68,8 +70,6 @@ PAPER_FEATURE_RMSE = {"VicPark_200_local_maps": 0.193141, "DLR_200_local_maps": 
 
 def benchmark_feature_only(dataset: Dataset) -> dict[str, Any]:
     """Feature-only joining of a pose-feature dataset by each method, with RMSE against its NLS."""
-    from linear_slam_ros.feature_only.online import run_feature_join
-
     runs = {}
     for method in FEATURE_ONLY_RUNS.get(dataset.name, ()):
         gc.collect()

@@ -1,4 +1,4 @@
-"""Accuracy figures: RMSE between two results, NEES against a ground truth, latency summaries.
+"""Accuracy figures: RMSE between two results, NEES against a ground truth.
 
 Both results compared must be in the same frame (the benchmark's convention: pose 0); RMSE is
 per coordinate with no alignment, as in the datasets README:
@@ -7,8 +7,8 @@ per coordinate with no alignment, as in the datasets README:
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -117,16 +117,4 @@ def nees(
     )
 
 
-def latency_summary(seconds: Sequence[float]) -> dict[str, float]:
-    """Return p50/p99/max of per-submap latencies, in milliseconds."""
-    arr = np.asarray(seconds, dtype=np.float64) * 1e3
-    if arr.size == 0:
-        return {"per_submap_ms_p50": 0.0, "per_submap_ms_p99": 0.0, "per_submap_ms_max": 0.0}
-    return {
-        "per_submap_ms_p50": float(np.percentile(arr, 50)),
-        "per_submap_ms_p99": float(np.percentile(arr, 99)),
-        "per_submap_ms_max": float(arr.max()),
-    }
-
-
-__all__ = ["rmse", "nees", "NeesResult", "latency_summary", "positions"]
+__all__ = ["rmse", "nees", "NeesResult", "positions"]

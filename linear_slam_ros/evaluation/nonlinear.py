@@ -7,21 +7,19 @@ on long datasets (see the datasets README), which is why :func:`refine` takes an
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt
+import scipy.sparse as sp
 
+from linear_slam_ros.core import least_squares
 from linear_slam_ros.core.errors import SolverError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.objective import MapObjective
-from linear_slam_ros.core.solvers import solve_sparse_spd
-
-logger = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -54,7 +52,7 @@ def gauss_newton(
 ) -> RefineResult:
     """Minimise ``sum_i e_i^T I_i e_i`` over the variables of ``initial``, in ``initial``'s frame.
 
-    Steps that raise the objective are halved (up to 20 times); angles are wrapped after each step.
+    The loop is :func:`linear_slam_ros.core.least_squares.gauss_newton`; angles are wrapped after each step.
 
     Args:
         initial: variables and starting estimate; its frame pose is held fixed.
@@ -69,43 +67,27 @@ def gauss_newton(
     """
     objective = MapObjective.build(initial, maps)
     angles = initial.angles
-    x = initial.x.copy()
-    r, jac = objective.residuals(x, jacobian=True)
-    chi2 = float(r @ (objective.weight @ r))
-    history = [chi2]
-    converged = False
-    it = 0
-    for it in range(1, max_iterations + 1):
-        wj = objective.weight @ jac
-        hessian = (jac.T @ wj).tocsr()
-        grad = jac.T @ (objective.weight @ r)
-        dx = solve_sparse_spd(hessian, -grad)
-        step = 1.0
-        for _ in range(20):
-            x_try = x + step * dx
-            x_try[angles] = wrap_angle(x_try[angles])
-            r_try, jac_try = objective.residuals(x_try, jacobian=True)
-            chi2_try = float(r_try @ (objective.weight @ r_try))
-            if chi2_try <= chi2 * (1 + 1e-12) + 1e-12:
-                break
-            step *= 0.5
-        else:
-            logger.info("Gauss-Newton: no decrease along the step at iteration %d; stopping", it)
-            converged = True
-            break
-        decrease = chi2 - chi2_try
-        x, r, jac, chi2 = x_try, r_try, jac_try, chi2_try
-        history.append(chi2)
-        logger.debug("Gauss-Newton iteration %d: chi2 %.6f, max step %.3g", it, chi2, np.abs(step * dx).max())
-        if np.abs(step * dx).max() < step_tol or decrease <= chi2_rtol * max(chi2, 1e-300):
-            converged = True
-            break
+
+    def apply_step(x: FloatArray, dx: FloatArray) -> FloatArray:
+        x_new = x + dx
+        x_new[angles] = wrap_angle(x_new[angles])
+        return x_new
+
+    def residuals(x: FloatArray) -> tuple[FloatArray, sp.csr_matrix]:
+        r, jac = objective.residuals(x, jacobian=True)
+        assert jac is not None
+        return r, jac
+
+    gn = least_squares.gauss_newton(
+        residuals, objective.weight, initial.x, apply_step, max_iterations, step_tol, chi2_rtol
+    )
+    jac = gn.jacobian
     hessian = (jac.T @ (objective.weight @ jac)).tocsr()
     hessian = ((hessian + hessian.T) * 0.5).tocsr()
-    if not np.all(np.isfinite(x)):
+    if not np.all(np.isfinite(gn.x)):
         raise SolverError("Gauss-Newton diverged to non-finite values")
-    result = initial.replace(x=x, info=hessian)
-    return RefineResult(result, chi2, tuple(history), it, converged)
+    result = initial.replace(x=gn.x, info=hessian)
+    return RefineResult(result, gn.chi2, gn.chi2_history, gn.iterations, gn.converged)
 
 
 def refine(initial: LocalMap, maps: Sequence[LocalMap], max_iterations: int = 50) -> RefineResult:

@@ -9,8 +9,8 @@ origin pose that is not a variable.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -24,7 +24,9 @@ FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 
-def _block_triplets(row_starts: IntArray, nrows: int, col_starts: IntArray, ncols: int, blocks: FloatArray):
+def _block_triplets(
+    row_starts: IntArray, nrows: int, col_starts: IntArray, ncols: int, blocks: FloatArray
+) -> tuple[IntArray, IntArray, FloatArray]:
     r = np.broadcast_to(row_starts[:, None, None] + np.arange(nrows)[None, :, None], blocks.shape)
     c = np.broadcast_to(col_starts[:, None, None] + np.arange(ncols)[None, None, :], blocks.shape)
     return r.ravel(), c.ravel(), blocks.ravel()
@@ -52,7 +54,7 @@ class MapObjective:
     pose_ref: IntArray
 
     @classmethod
-    def build(cls, layout: LocalMap, maps: Sequence[LocalMap]) -> "MapObjective":
+    def build(cls, layout: LocalMap, maps: Sequence[LocalMap]) -> MapObjective:
         """Index every local map's variables into ``layout``'s state.
 
         Args:
@@ -104,7 +106,8 @@ class MapObjective:
             n_state=layout.state_dim,
             origin_id=layout.frame_id,
             z=np.concatenate(zs),
-            weight=sp.block_diag(infos, format="csr"),
+            # scipy-stubs type block_diag of csr_matrix blocks as csr_array | csr_matrix; it is a csr_matrix
+            weight=sp.block_diag(infos, format="csr"),  # type: ignore[arg-type]
             angle_rows=np.concatenate(angle_rows),
             feat_rows=cat(feat_rows),
             feat_cols=cat(feat_cols),

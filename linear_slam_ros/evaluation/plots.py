@@ -22,7 +22,8 @@ def plot_map(local_map: LocalMap, path: Path, title: str = "") -> None:
         poses.append((int(local_map.ids[i]), local_map.x[local_map.offsets[i] : local_map.offsets[i] + d]))
     poses.sort(key=lambda item: item[0])
     xy = np.array([p for _, p in poses])
-    feats = np.array([local_map.x[local_map.offsets[i] : local_map.offsets[i] + d] for i in np.flatnonzero(local_map.kinds == FEATURE).tolist()])
+    feature_indices = np.flatnonzero(local_map.kinds == FEATURE).tolist()
+    feats = np.array([local_map.x[local_map.offsets[i] : local_map.offsets[i] + d] for i in feature_indices])
     fig, ax = plt.subplots(figsize=(7, 7))
     ax.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=0.8, label=f"robot path ({len(poses)} poses)")
     if feats.size:

@@ -1,38 +1,24 @@
-"""Run a joining method over a sequence of local maps, timing every step (for CLI and benchmark)."""
+"""Timed joining runs over a sequence of local maps, through the strategy registry (CLI and benchmark)."""
 
 from __future__ import annotations
 
-import enum
-import resource
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence, TypeVar
+from typing import Any
+
+import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.joining.pairwise import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.core.runtime import blas_threads, blas_threads_for, tune_allocator
-from linear_slam_ros.joining.sequential import SequentialState, sequential_step
-
-
-class JoinMethod(str, enum.Enum):
-    """Joining methods of the CLI and the node."""
-
-    SEQUENTIAL = "sequential"
-    """Exact sequential joining in the robocentric end-pose frame (Sec. 5.1)."""
-    DC = "dc"
-    """Batch divide and conquer (Sec. 5.2)."""
-    ONLINE_DC = "online-dc"
-    """Divide and conquer as submaps arrive: a binary-counter stack, merged for output."""
-
-
-class MapType(str, enum.Enum):
-    """What the joiner keeps of pose-feature submaps (the node's ``map_type``)."""
-
-    AS_IS = "as-is"
-    """Join the submaps' variables as they are (pose-feature, pose-only or feature-only)."""
-    FEATURE_ONLY = "feature-only"
-    """Marginalise the poses and join feature-only maps in feature-defined frames (Sec. 7)."""
+from linear_slam_ros.core.runtime import blas_threads, tune_allocator
+from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
+from linear_slam_ros.feature_only.conversion import to_feature_only
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.feature_only.precondition import precondition
+from linear_slam_ros.feature_only.refine import feature_residuals, feature_rmse, refine_features
+from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
 
 @dataclass(frozen=True)
@@ -41,80 +27,99 @@ class JoinRun:
 
     Attributes:
         method: the method used.
-        result: the joined map, in the frame of the last end pose.
+        result: the joined map (pose maps: in the frame of the last end pose; feature-only
+            maps: in their feature frame).
         seconds: wall time of the joining only (no reading, no output), s.
-        step_seconds: per-step wall times, s: one per submap for ``sequential`` and ``online-dc``
-            (for ``online-dc`` the final merge is added to the last step), one per pairwise join
-            for ``dc``.
+        step_seconds: per-step wall times, s: one per submap for streaming strategies (for
+            ``online-dc`` the final merge is added to the last step), one per pairwise join for
+            batch ones.
         n_submaps: number of local maps joined.
+        step_unit: what one step is: ``"per submap"`` or ``"per pairwise join"``.
     """
 
     method: JoinMethod
-    result: LocalMap
+    result: Any
     seconds: float
     step_seconds: tuple[float, ...] = field(repr=False)
     n_submaps: int
-
-
-def peak_rss_mb() -> float:
-    """Return this process's peak resident set size in MiB (Linux ``ru_maxrss`` is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-S = TypeVar("S")
-
-
-def _timed_fold(
-    step: Callable[[S, LocalMap], S], state: S, maps: Sequence[LocalMap], steps: list[float],
-    progress: Callable[[int], None] | None,
-) -> S:
-    """Apply ``step`` to each map in turn, appending each step's wall time to ``steps``."""
-    for m in maps:
-        t0 = time.perf_counter()
-        state = step(state, m)
-        steps.append(time.perf_counter() - t0)
-        if progress:
-            progress(1)
-    return state
+    step_unit: str
 
 
 def run_join(
-    maps: Sequence[LocalMap], method: JoinMethod | str, progress: Callable[[int], None] | None = None
+    maps: Sequence[LocalMap],
+    method: JoinMethod | str,
+    map_type: MapType | str = MapType.AS_IS,
+    progress: Callable[[int], None] | None = None,
 ) -> JoinRun:
-    """Join ``maps`` with ``method``, timing each step.
+    """Join ``maps`` with the strategy registered for ``(method, map_type)``, timing each step.
+
+    The process is tuned as the strategy asks (BLAS threads, allocator; :mod:`~linear_slam_ros.core.runtime`).
 
     Args:
         maps: local maps in order.
         method: a :class:`JoinMethod` or its value.
+        map_type: a :class:`MapType` or its value.
         progress: called with the number of submaps (or joins) just completed.
 
     Raises:
         InvalidMapError: ``maps`` is empty.
     """
-    method = JoinMethod(method)
+    strategy = get_strategy(method, map_type)
     if not maps:
         raise InvalidMapError("no local maps to join")
     tune_allocator()
-    steps: list[float] = []
-    clock = time.perf_counter
-    with blas_threads(blas_threads_for(method.value)):
-        start = clock()
-        if method is JoinMethod.SEQUENTIAL:
-            state = _timed_fold(sequential_step, SequentialState(), maps, steps, progress)
-            assert state.global_map is not None
-            result = state.global_map.to_local_map()
-        elif method is JoinMethod.ONLINE_DC:
-            dc_state = _timed_fold(online_dc_step, OnlineDCState(), maps, steps, progress)
-            t0 = clock()
-            result = online_dc_result(dc_state)
-            steps[-1] += clock() - t0
-        else:
+    with blas_threads(strategy.blas_threads):
+        start = time.perf_counter()
+        result, steps = strategy.run(maps, progress)
+        seconds = time.perf_counter() - start
+    return JoinRun(strategy.method, result, seconds, tuple(steps), len(maps), strategy.run_step)
 
-            def on_join(seconds: float) -> None:
-                steps.append(seconds)
-                if progress:
-                    progress(1)
 
-            result = join_divide_and_conquer(maps, on_join)
-        seconds = clock() - start
-    return JoinRun(method, result, seconds, tuple(steps), len(maps))
+@dataclass(frozen=True)
+class FeatureRun:
+    """A timed feature-only joining run of pose-feature local maps (CLI and benchmark).
+
+    Attributes:
+        joined: the linear result.
+        refined: the feature-only Nonlinear LS from ``joined`` (I-DMJ's optimum), if asked.
+        report: figures: seconds (joining only), latency, χ² (of the refined map when there is
+            one, with ``linear_chi2``), RMSE of the linear result against the refined one.
+    """
+
+    joined: FeatureMap
+    refined: FeatureMap | None
+    report: dict[str, Any]
+
+
+def run_feature_join(maps: Sequence[LocalMap], method: JoinMethod | str, refine_too: bool = False) -> FeatureRun:
+    """Precondition, marginalise and join pose-feature maps as feature-only maps, timed, with figures.
+
+    ``online-dc`` times each submap; ``sequential`` and ``dc`` convert every group first and
+    time each pairwise join.
+    """
+    run = run_join(maps, method, MapType.FEATURE_ONLY)
+    joined: FeatureMap = run.result
+    feature_maps = [to_feature_only(g) for g in precondition(maps)]  # for the objective (not timed)
+    residual, _ = feature_residuals(joined, joined.x, feature_maps, jacobian=False)
+    weight = sp.block_diag([sp.csr_matrix(m.info) for m in feature_maps], format="csr")
+    report: dict[str, Any] = {
+        "map_type": MapType.FEATURE_ONLY.value,
+        "method": run.method.value,
+        "n_submaps": len(maps),
+        "n_feature_maps": len(feature_maps),
+        "state_dim": joined.state_dim,
+        "seconds": run.seconds,
+        **latency_summary(run.step_seconds),
+        "latency_unit": run.step_unit,
+        "peak_rss_mb": peak_rss_mb(),
+        "chi2": float(residual @ (weight @ residual)),
+        "info_nnz": int(sp.csr_matrix(joined.info).count_nonzero()),
+        "frame_features": list(joined.frame_ids),
+    }
+    refined = None
+    if refine_too:
+        nls = refine_features(joined, feature_maps)
+        refined = nls.map
+        report.update({"linear_chi2": report["chi2"], "chi2": nls.chi2, "refine_iterations": nls.iterations,
+                       "rmse_feature_linear_vs_nls": feature_rmse(joined, refined)})
+    return FeatureRun(joined, refined, report)

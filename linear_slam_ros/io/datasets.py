@@ -12,9 +12,9 @@ import logging
 import os
 import re
 import tarfile
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -32,7 +32,7 @@ FloatArray = npt.NDArray[np.float64]
 _LOCALMAP_RE = re.compile(r"^localmap_(\d+)\.txt$")
 
 
-class MapKind(str, enum.Enum):
+class MapKind(str, enum.Enum):  # noqa: UP042 - enum.StrEnum would change str() and format() of the members
     """The kind of a dataset's local maps: dimension and pose-feature (PF) or pose-only (PG)."""
 
     PF2D = "2DPF"
@@ -251,11 +251,11 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
 def format_local_map(local_map: LocalMap, kind: MapKind) -> str:
     """Return a map in the benchmark text format (inverse of :func:`parse_local_map_text`)."""
     scalar_ids = []
-    for vid, vk, size in zip(local_map.ids.tolist(), local_map.kinds.tolist(), local_map.sizes.tolist()):
+    for vid, vk, size in zip(local_map.ids.tolist(), local_map.kinds.tolist(), local_map.sizes.tolist(), strict=True):
         tag = -vid if (kind.has_features and vk == POSE) else vid
         scalar_ids.extend([tag] * size)
     lines = [str(local_map.frame_id), str(local_map.state_dim)]
-    lines += [f"{i} {v:.17g}" for i, v in zip(scalar_ids, local_map.x.tolist())]
+    lines += [f"{i} {v:.17g}" for i, v in zip(scalar_ids, local_map.x.tolist(), strict=True)]
     info = local_map.info_dense()
     lines += [" ".join(f"{v:.17g}" for v in row) for row in info.tolist()]
     return "\n".join(lines) + "\n"

@@ -10,23 +10,19 @@ from __future__ import annotations
 import collections
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Callable
-
-import numpy as np
+from typing import Any
 
 from linear_slam_ros.core.errors import InvalidMapError, LinearSlamError
-from linear_slam_ros.feature_only.maps import FeatureMap
-from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
-from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.joining.pairwise import OnlineDCState, online_dc_result, online_dc_step
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.evaluation.runner import JoinMethod, MapType
-from linear_slam_ros.joining.sequential import SequentialState, sequential_step
+from linear_slam_ros.core.timing import latency
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.joiner.config import OutputFrame
+from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
 logger = logging.getLogger(__name__)
-
-OUTPUT_FRAMES = ("end_pose", "first_pose")
 
 
 @dataclass(frozen=True)
@@ -34,30 +30,32 @@ class JoinerState:
     """The whole joiner state: one value, saved and restored as a unit.
 
     Attributes:
-        mode: ``sequential`` or ``online-dc``.
-        sequential: state of exact sequential joining (mode ``sequential``).
-        online: state of online divide and conquer (mode ``online-dc``).
-        features: state of feature-only joining; set exactly when ``map_type`` is
-            ``feature-only`` (then the other joining states stay empty).
+        method: joining method (with ``map_type``, the registry key of the strategy).
+        map_type: ``as-is`` or ``feature-only``.
+        joined: the strategy's own state (see :meth:`strategy`).
         first_pose_id: frame pose of the first joined submap (``map_frame`` of the outputs).
         n_joined: submaps joined.
         next_seq: sequence number expected next (``None`` before the first submap).
         last_seq: sequence number of the last joined submap.
     """
 
-    mode: JoinMethod
-    sequential: SequentialState = SequentialState()
-    online: OnlineDCState = OnlineDCState()
-    features: FeatureJoinState | None = None
+    method: JoinMethod
+    map_type: MapType
+    joined: Any
     first_pose_id: int | None = None
     n_joined: int = 0
     next_seq: int | None = None
     last_seq: int | None = None
 
     @property
-    def map_type(self) -> MapType:
-        """``feature-only`` when the state joins feature-only maps, else ``as-is``."""
-        return MapType.AS_IS if self.features is None else MapType.FEATURE_ONLY
+    def strategy(self) -> AnyStrategy:
+        """The joining strategy of this state."""
+        return get_strategy(self.method, self.map_type)
+
+
+def new_state(method: JoinMethod, map_type: MapType = MapType.AS_IS) -> JoinerState:
+    """Return the empty state of a joiner."""
+    return JoinerState(method, map_type, get_strategy(method, map_type).empty())
 
 
 def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
@@ -66,47 +64,48 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
     Raises:
         LinearSlamError: the submap cannot be joined (the state is unchanged).
     """
-    if state.features is not None:
-        new = replace(state, features=feature_step(state.features, submap))
-    elif state.mode is JoinMethod.SEQUENTIAL:
-        new = replace(state, sequential=sequential_step(state.sequential, submap))
-    else:
-        new = replace(state, online=online_dc_step(state.online, submap))
+    joined = state.strategy.step(state.joined, submap)
     first = state.first_pose_id if state.first_pose_id is not None else submap.frame_id
-    return replace(new, first_pose_id=first, n_joined=state.n_joined + 1, next_seq=seq + 1, last_seq=seq)
+    return replace(state, joined=joined, first_pose_id=first, n_joined=state.n_joined + 1, next_seq=seq + 1, last_seq=seq)
 
 
-def new_state(mode: JoinMethod, map_type: MapType = MapType.AS_IS) -> JoinerState:
-    """Return the empty state of a joiner."""
-    features = FeatureJoinState(mode) if map_type is MapType.FEATURE_ONLY else None
-    return JoinerState(mode, features=features)
+def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> Any | None:
+    """Return the joined map of any strategy (``None`` while there is none).
 
-
-def global_map_of(state: JoinerState, output_frame: str = "end_pose") -> LocalMap | None:
-    """Return the global map in the robocentric end-pose frame or the first pose's frame.
-
-    Raises:
-        InvalidMapError: the state is feature-only (see :func:`global_feature_map_of`).
+    Pose maps are in the robocentric end-pose frame, or in the first pose's frame with
+    ``output_frame`` ``first_pose``; feature-only maps in their feature frame.
     """
-    if state.map_type is MapType.FEATURE_ONLY:
-        raise InvalidMapError("a feature-only joiner has no pose frame: use global_feature_map_of")
     if state.n_joined == 0:
         return None
-    if state.mode is JoinMethod.SEQUENTIAL:
-        assert state.sequential.global_map is not None
-        joined = state.sequential.global_map.to_local_map()
-    else:
-        joined = online_dc_result(state.online)
-    if output_frame == "first_pose" and state.first_pose_id is not None and joined.frame_id != state.first_pose_id:
-        joined = change_frame(joined, state.first_pose_id)
-    return joined
+    strategy = state.strategy
+    result = strategy.result(state.joined)
+    if result is None or OutputFrame(output_frame) is OutputFrame.END_POSE or state.first_pose_id is None:
+        return result
+    return strategy.express(result, state.first_pose_id)
+
+
+def global_map_of(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> LocalMap | None:
+    """Return the global pose map in the robocentric end-pose frame or the first pose's frame.
+
+    Raises:
+        InvalidMapError: the strategy's maps have no pose frame (see :func:`global_feature_map_of`).
+    """
+    if state.strategy.result_type is not LocalMap:
+        raise InvalidMapError(f"a {state.map_type.value} joiner has no pose frame: use global_feature_map_of")
+    result: LocalMap | None = global_result(state, output_frame)
+    return result
 
 
 def global_feature_map_of(state: JoinerState) -> FeatureMap | None:
-    """Return the feature-only global map (in the frame of its longest-baseline features)."""
-    if state.features is None:
+    """Return the feature-only global map (in the frame of its longest-baseline features).
+
+    Raises:
+        InvalidMapError: the strategy does not make feature-only maps.
+    """
+    if state.strategy.result_type is not FeatureMap:
         raise InvalidMapError(f"a joiner with map_type {state.map_type.value!r} has no feature-only map")
-    return feature_result(state.features)
+    result: FeatureMap | None = global_result(state)
+    return result
 
 
 @dataclass
@@ -140,7 +139,7 @@ class Joiner:
 
     def reset(self) -> None:
         """Forget every submap, count and buffered message."""
-        self.state = new_state(self.state.mode, self.state.map_type)
+        self.state = new_state(self.state.method, self.state.map_type)
         self.rejected.clear()
         self.join_seconds.clear()
         self._pending.clear()
@@ -199,13 +198,13 @@ class Joiner:
 
     def stats(self) -> dict[str, float]:
         """Return counts and join-latency figures (ms) for the global map message."""
-        ms = np.asarray(self.join_seconds) * 1e3
+        lat = latency(self.join_seconds)
         return {
             "n_joined": float(self.state.n_joined),
             "n_rejected": float(self.n_rejected),
-            "last_join_ms": float(ms[-1]) if ms.size else 0.0,
-            "join_ms_p50": float(np.percentile(ms, 50)) if ms.size else 0.0,
-            "join_ms_p99": float(np.percentile(ms, 99)) if ms.size else 0.0,
-            "join_ms_max": float(ms.max()) if ms.size else 0.0,
-            "join_seconds_total": float(ms.sum() / 1e3),
+            "last_join_ms": self.join_seconds[-1] * 1e3 if self.join_seconds else 0.0,
+            "join_ms_p50": lat.p50_ms,
+            "join_ms_p99": lat.p99_ms,
+            "join_ms_max": lat.max_ms,
+            "join_seconds_total": float(sum(self.join_seconds)),
         }

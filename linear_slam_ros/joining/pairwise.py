@@ -1,4 +1,4 @@
-"""Linear joining of two maps (Sec. 4.3, 6) and of sequences: divide-and-conquer, batch and online.
+"""Linear joining of two maps (Sec. 4.3, 6): the step every joining strategy is made of.
 
 Joining two maps that share a frame is a linear least-squares problem (eqs. 12-17): every
 variable is observed directly by each map that holds it, so ``A^T I_Z A`` is the scatter-sum of
@@ -11,9 +11,6 @@ most pi (Remark 3).
 from __future__ import annotations
 
 import logging
-import time
-from dataclasses import dataclass
-from typing import Callable, Iterable, Sequence, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -22,7 +19,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
-from linear_slam_ros.core.local_map import LocalMap, scalar_indices, to_csr, to_dense, var_offsets
+from linear_slam_ros.core.local_map import LocalMap, StateLayout, scalar_indices, to_csr, to_dense, var_offsets
 from linear_slam_ros.core.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
 
 logger = logging.getLogger(__name__)
@@ -95,9 +92,8 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
 
     x, joined_info = solve_union(map_a.info, z_a, map_b.info, z_b, b_to_union, n)
     end_id = map_b.end_id if map_b.end_id is not None else map_a.end_id
-    joined = LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name)
-    joined.__dict__.update(sizes=sizes, offsets=offsets)  # layout already known: seed the caches
-    return joined
+    layout = StateLayout(map_a.dim, kinds, known_sizes=sizes, known_offsets=offsets)
+    return LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name, layout)
 
 
 def solve_union(
@@ -181,137 +177,3 @@ def join_pair(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NAME) -> Loca
     of the two maps' objective (Lemma 1), in the frame of the new end pose.
     """
     return to_end_frame(join_at_seam(map_a, map_b, name))
-
-
-def join_sequential_information(maps: Iterable[LocalMap]) -> LocalMap:
-    """Join maps one at a time with the information-form step (Sec. 5.1), in end-pose frames.
-
-    This is the literal recursion of the paper; :mod:`sequential` computes the same result much
-    faster in covariance form and is what the CLI and the node use.
-    """
-    it = iter(maps)
-    try:
-        result = to_end_frame(next(it))
-    except StopIteration:
-        raise InvalidMapError("no local maps to join") from None
-    for local_map in it:
-        result = join_pair(result, local_map)
-    return result
-
-
-def join_divide_and_conquer(
-    maps: Sequence[LocalMap], on_join: Callable[[float], None] | None = None
-) -> LocalMap:
-    """Join maps by divide and conquer (Sec. 5.2): pair neighbours level by level.
-
-    At each level maps ``(1, 2), (3, 4), ...`` are joined at their seam (:func:`join_at_seam`);
-    an odd last map moves up unchanged; the final map moves to the last end pose.
-
-    Args:
-        maps: local maps in order; map ``i + 1`` starts where map ``i`` ends.
-        on_join: called after every pairwise join with its wall time in seconds.
-
-    Returns:
-        The joined map in the frame of the last map's end pose.
-    """
-    if not maps:
-        raise InvalidMapError("no local maps to join")
-    level = list(maps)
-    while len(level) > 1:
-        nxt = []
-        for i in range(0, len(level) - 1, 2):
-            t0 = time.perf_counter()
-            nxt.append(join_at_seam(level[i], level[i + 1]))
-            if on_join is not None:
-                on_join(time.perf_counter() - t0)
-        if len(level) % 2:
-            nxt.append(level[-1])
-        level = nxt
-    return to_end_frame(level[0])
-
-
-@dataclass(frozen=True)
-class OnlineDCState:
-    """State of online divide-and-conquer joining: a binary-counter stack of joined maps.
-
-    Attributes:
-        stack: joined maps, oldest first, each in the frame of its seam (or its own start);
-            ``counts[i]`` submaps make up ``stack[i]``, and counts strictly decrease along the
-            stack (each a power of two).
-        counts: number of submaps in each stack entry.
-        n_joined: total number of submaps joined.
-    """
-
-    stack: tuple[LocalMap, ...] = ()
-    counts: tuple[int, ...] = ()
-    n_joined: int = 0
-
-
-def online_dc_step(state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
-    """Push a submap and merge equal-sized neighbours (a pure function of state and submap).
-
-    Each merge is one :func:`join_at_seam`; a submap triggers as many merges as trailing ones
-    in the binary count of joined submaps, so the amortised cost per submap stays constant and
-    the largest merge happens once every power of two.
-
-    Raises:
-        FrameError: the submap neither is in nor holds the end pose of the newest stack entry.
-    """
-    if state.stack:
-        seam = state.stack[-1].end_id
-        if seam is not None and submap.frame_id != seam and not submap.has_pose(seam):
-            raise FrameError(
-                f"submap {submap.name!r} is in the frame of pose {submap.frame_id} and does not hold pose {seam}, "
-                "the end pose of the global map"
-            )
-    new_stack, new_counts = counter_push(state.stack, state.counts, submap, join_at_seam)
-    return OnlineDCState(new_stack, new_counts, state.n_joined + 1)
-
-
-T = TypeVar("T")
-
-
-def counter_push(
-    stack: Sequence[T], counts: Sequence[int], item: T, join: Callable[[T, T], T]
-) -> tuple[tuple[T, ...], tuple[int, ...]]:
-    """Push ``item`` on a binary-counter stack and merge equal-sized neighbours with ``join``.
-
-    Args:
-        stack: joined entries, oldest first.
-        counts: number of items in each entry (powers of two, strictly decreasing).
-        item: the new item (count 1).
-        join: ``join(older, newer)``.
-
-    Returns:
-        The new stack and counts.
-    """
-    stack_l, counts_l = list(stack) + [item], list(counts) + [1]
-    while len(counts_l) >= 2 and counts_l[-1] == counts_l[-2]:
-        right, left = stack_l.pop(), stack_l.pop()
-        c = counts_l.pop() + counts_l.pop()
-        stack_l.append(join(left, right))
-        counts_l.append(c)
-    return tuple(stack_l), tuple(counts_l)
-
-
-def online_dc_result(state: OnlineDCState) -> LocalMap:
-    """Merge the stack (newest entries first, so small joins come first); end-pose frame."""
-    if not state.stack:
-        raise InvalidMapError("no submaps joined yet")
-    result = state.stack[-1]
-    for left in reversed(state.stack[:-1]):
-        result = join_at_seam(left, result)
-    return to_end_frame(result)
-
-
-def join_online_dc(maps: Iterable[LocalMap]) -> LocalMap:
-    """Join maps with the online divide-and-conquer stack and return the merged result."""
-    state = OnlineDCState()
-    for m in maps:
-        state = online_dc_step(state, m)
-    return online_dc_result(state)
-
-
-def express_in(local_map: LocalMap, pose_id: int) -> LocalMap:
-    """Return the map in the frame of pose ``pose_id`` (e.g. the first pose, for output)."""
-    return change_frame(local_map, pose_id)

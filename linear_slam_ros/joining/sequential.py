@@ -33,7 +33,7 @@ import scipy.linalg.blas
 from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian
 from linear_slam_ros.core.geometry import angle_size, pose_size, wrap_angle
-from linear_slam_ros.core.local_map import POSE, LocalMap, VariableLayout, pose_key, to_dense, var_offsets
+from linear_slam_ros.core.local_map import POSE, LocalMap, StateLayout, VariableLayout, pose_key, to_dense, var_offsets
 
 logger = logging.getLogger(__name__)
 
@@ -77,6 +77,7 @@ class CovarianceMap(VariableLayout):
         rot: ``(d, d)`` common block of ``Q`` for positions and translations.
         ang_blocks: ``(m_poses, a, a)`` blocks of ``Q`` for pose orientations, in state order.
         name: label for messages.
+        layout: the state layout of ``dim`` and ``kinds`` (built when not given).
     """
 
     dim: int
@@ -89,6 +90,11 @@ class CovarianceMap(VariableLayout):
     rot: FloatArray
     ang_blocks: FloatArray
     name: str = "global"
+    layout: StateLayout = dataclasses.field(default=None, repr=False)  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.layout is None:
+            object.__setattr__(self, "layout", StateLayout(self.dim, self.kinds))
 
     @classmethod
     def from_local_map(cls, local_map: LocalMap, name: str = "global") -> "CovarianceMap":
@@ -162,13 +168,16 @@ class CovarianceMap(VariableLayout):
             raise SolverError("covariance of the global map is not positive definite") from None
         info = scipy.linalg.cho_solve(factor, np.eye(self.state_dim))
         return LocalMap.trusted(
-            self.dim, self.frame_id, self.end_id, self.ids, self.kinds, self.x, 0.5 * (info + info.T), self.name
+            self.dim, self.frame_id, self.end_id, self.ids, self.kinds, self.x, 0.5 * (info + info.T), self.name,
+            self.layout,
         )
 
     def replace(self, **changes: object) -> "CovarianceMap":
-        """Return a copy with some fields changed."""
+        """Return a copy with some fields changed (the layout is shared unless ``dim`` or ``kinds`` change)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values.update(changes)
+        if "dim" in changes or "kinds" in changes:
+            values["layout"] = None
         return CovarianceMap(**values)  # type: ignore[arg-type]
 
     def change_frame(self, new_frame_id: int, _in_place: bool = False) -> "CovarianceMap":

@@ -1,131 +1,166 @@
-"""Pose-graph chunks: the relative-pose constraints of one submap, and their local maps.
+"""Conversions between pose graphs and pose-only local maps.
 
-A chunk is a set of edges ``(from, to, z, I)``: pose ``to`` measured from pose ``from`` as
-``z`` (``x y phi`` / ``x y z alpha beta gamma``, the datasets' convention) with ``p x p``
-information ``I``. A *star* chunk (every edge leaves one pose, as in the benchmark pose-only
-datasets) is already a pose-only local map in the frame of that pose: its estimate is the
-measurements, its information block diagonal, with repeated edges fused. Other chunks need a
-closed-form estimate of their own (LAGO, 2D) before they can be joined.
+A *star* graph (every edge leaves one pose, as in the benchmark pose-only datasets and the
+``pose_graph`` chunks made from them) is already a pose-only local map in the frame of that
+pose: its estimate is the measurements, its information block diagonal, with repeated edges
+fused. Other graphs need a closed-form estimate of their own (LAGO, 2D) before they can be
+joined. The other way round, local maps give back the edges they hold
+(:func:`graph_from_local_maps`), and each edge is a one-pose local map (:func:`edge_maps`) for
+the χ² of the graph objective.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
 
 import numpy as np
-import numpy.typing as npt
 import scipy.linalg
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError
 from linear_slam_ros.core.geometry import pose_size
 from linear_slam_ros.core.local_map import POSE, LocalMap, default_end_pose, fuse_repeated
-
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
-
-
-@dataclass(frozen=True, eq=False)
-class PoseGraphChunk:
-    """Relative-pose constraints of one submap.
-
-    Attributes:
-        dim: 2 or 3.
-        seq: sequence number of the chunk.
-        from_ids: ``(k,)`` pose ids the measurements are taken from.
-        to_ids: ``(k,)`` pose ids measured.
-        measurements: ``(k, p)`` pose ``to`` seen from pose ``from`` (m, rad).
-        information: ``(k, p, p)`` symmetric positive-definite information of each edge.
-    """
-
-    dim: int
-    seq: int
-    from_ids: IntArray
-    to_ids: IntArray
-    measurements: FloatArray
-    information: FloatArray
-
-    def __post_init__(self) -> None:
-        who = f"pose-graph chunk {self.seq}"
-        if self.dim not in (2, 3):
-            raise GraphError(f"{who}: dimension must be 2 or 3, got {self.dim}")
-        p = pose_size(self.dim)
-        k = self.from_ids.shape[0] if np.ndim(self.from_ids) == 1 else -1
-        if k < 1 or np.shape(self.to_ids) != (k,):
-            raise GraphError(f"{who}: needs at least one edge and equal numbers of from and to ids")
-        if np.shape(self.measurements) != (k, p) or np.shape(self.information) != (k, p, p):
-            raise GraphError(
-                f"{who}: {k} edges need measurements ({k}, {p}) and information ({k}, {p}, {p}), got "
-                f"{np.shape(self.measurements)} and {np.shape(self.information)}"
-            )
-        if np.any(self.from_ids < 0) or np.any(self.to_ids < 0):
-            raise GraphError(f"{who}: pose ids must be >= 0")
-        loops = np.flatnonzero(self.from_ids == self.to_ids)
-        if loops.size:
-            raise GraphError(f"{who}: edge {int(loops[0])} connects pose {int(self.from_ids[loops[0]])} to itself")
-        if not (np.all(np.isfinite(self.measurements)) and np.all(np.isfinite(self.information))):
-            raise GraphError(f"{who}: non-finite measurement or information")
-        for e in range(k):
-            block = self.information[e]
-            if not np.allclose(block, block.T, rtol=1e-9, atol=0):
-                raise GraphError(f"{who}: information of edge {e} ({int(self.from_ids[e])}->{int(self.to_ids[e])}) is not symmetric")
-            try:
-                scipy.linalg.cholesky(block)
-            except np.linalg.LinAlgError:
-                raise GraphError(
-                    f"{who}: information of edge {e} ({int(self.from_ids[e])}->{int(self.to_ids[e])}) is not positive definite"
-                ) from None
-
-    @property
-    def n_edges(self) -> int:
-        """Number of edges."""
-        return int(self.from_ids.shape[0])
-
-    @property
-    def is_star(self) -> bool:
-        """Whether every edge leaves the same pose."""
-        return bool(np.all(self.from_ids == self.from_ids[0]))
+from linear_slam_ros.pose_graph.graph import IntArray, PoseGraph
+from linear_slam_ros.pose_graph.lago import lago
 
 
-def star_chunk_to_local_map(chunk: PoseGraphChunk) -> LocalMap:
-    """Return the pose-only local map of a star chunk, in the frame of its centre pose.
+def star_chunk_to_local_map(graph: PoseGraph) -> LocalMap:
+    """Return the pose-only local map of a star graph, in the frame of its centre pose.
+
+    Args:
+        graph: a graph whose edges all leave one pose.
+
+    Returns:
+        Every pose the edges reach, ``measurements`` as the estimate (m, rad) and the edges'
+        information on the block diagonal; repeated edges to one pose are fused. The map's
+        end pose is :func:`linear_slam_ros.core.local_map.default_end_pose`; its name is the
+        graph's.
 
     Raises:
-        GraphError: the chunk is not a star.
+        GraphError: the graph is not a star, or its map is invalid.
     """
-    if not chunk.is_star:
+    if not graph.is_star:
         raise GraphError(
-            f"pose-graph chunk {chunk.seq} is not a star (edges leave poses {sorted(set(chunk.from_ids.tolist()))[:5]}): "
+            f"{graph.name} is not a star (edges leave poses {sorted(set(graph.from_ids.tolist()))[:5]}): "
             "it needs a closed-form estimate (LAGO) first"
         )
-    frame = int(chunk.from_ids[0])
-    p = pose_size(chunk.dim)
-    kinds = np.full(chunk.n_edges, POSE, dtype=np.int8)
-    info = scipy.linalg.block_diag(*chunk.information)
-    ids, kinds, values, info = chunk.to_ids.astype(np.int64), kinds, chunk.measurements.reshape(-1), info
-    name = f"pose_graph chunk {chunk.seq}"
+    frame = int(graph.from_ids[0])
+    p = pose_size(graph.dim)
+    kinds = np.full(graph.n_edges, POSE, dtype=np.int8)
+    info = scipy.linalg.block_diag(*graph.information)
+    ids, kinds, values, info = graph.to_ids.astype(np.int64), kinds, graph.measurements.reshape(-1), info
+    name = graph.name
     if np.unique(ids).size != ids.size:
-        ids, kinds, values, info = fuse_repeated(name, chunk.dim, ids, kinds, values, info)
+        ids, kinds, values, info = fuse_repeated(name, graph.dim, ids, kinds, values, info)
     assert values.size == ids.size * p
     try:
-        return LocalMap(chunk.dim, frame, default_end_pose(frame, ids), ids, kinds, values, info, name=name)
+        return LocalMap(graph.dim, frame, default_end_pose(frame, ids), ids, kinds, values, info, name=name)
     except InvalidMapError as exc:
         raise GraphError(str(exc)) from None
 
 
-def chunk_to_local_map(chunk: PoseGraphChunk) -> LocalMap:
-    """Return the pose-only local map of a chunk, in the frame of its first edge's ``from`` pose.
+def lago_local_map(graph: PoseGraph) -> LocalMap:
+    """Return the pose-only local map of a 2D graph by LAGO, in its first edge's ``from`` frame.
 
-    Star chunks convert exactly; other 2D chunks go through LAGO when it is available.
+    Args:
+        graph: a connected 2D graph.
+
+    Returns:
+        Every other pose of the graph estimated by :func:`linear_slam_ros.pose_graph.lago.lago`
+        anchored at ``from_ids[0]``; the end pose is the last of the odometry chain from there
+        (:func:`chunk_end_pose`, None when the chain is empty); the name is the graph's with
+        ``" (LAGO)"``.
 
     Raises:
-        GraphError: the chunk cannot be converted (the message says why).
+        GraphError: the graph is 3D, or disconnected.
     """
-    if chunk.is_star:
-        return star_chunk_to_local_map(chunk)
-    try:
-        from linear_slam_ros.pose_graph.lago import lago_local_map  # issue 4: closed-form 2D pose graphs
-    except ImportError:
-        raise GraphError(
-            f"pose-graph chunk {chunk.seq} is not a star and this build has no LAGO: only star chunks are accepted"
-        ) from None
-    return lago_local_map(chunk)
+    if graph.dim != 2:
+        raise GraphError(f"{graph.name}: LAGO is 2D only; this chunk is {graph.dim}D and not a star")
+    frame = int(graph.from_ids[0])
+    result = lago(graph, anchor_id=frame).map
+    end = chunk_end_pose(graph.from_ids, graph.to_ids, frame)
+    return LocalMap(
+        2, frame, end if end != frame else None, result.ids, result.kinds, result.x, result.info,
+        name=f"{graph.name} (LAGO)",
+    )
+
+
+def chunk_to_local_map(graph: PoseGraph) -> LocalMap:
+    """Return the pose-only local map of a graph, in the frame of its first edge's ``from`` pose.
+
+    Star graphs convert exactly (:func:`star_chunk_to_local_map`); other 2D graphs go through
+    LAGO (:func:`lago_local_map`).
+
+    Raises:
+        GraphError: the graph cannot be converted (the message says why).
+    """
+    if graph.is_star:
+        return star_chunk_to_local_map(graph)
+    return lago_local_map(graph)
+
+
+def edge_maps(graph: PoseGraph) -> list[LocalMap]:
+    """Return each edge as a one-pose local map (for χ² and Gauss-Newton on the graph objective).
+
+    Args:
+        graph: any graph.
+
+    Returns:
+        One map per edge, in edge order: pose ``to_ids[e]`` in the frame of pose
+        ``from_ids[e]`` (also its end pose), estimate ``measurements[e]``, information
+        ``information[e]``, named ``edge_<e>``.
+    """
+    maps = []
+    for e in range(graph.n_edges):
+        maps.append(
+            LocalMap.trusted(
+                graph.dim, int(graph.from_ids[e]), int(graph.to_ids[e]), graph.to_ids[e : e + 1].copy(),
+                np.array([POSE], dtype=np.int8), graph.measurements[e].copy(), graph.information[e], f"edge_{e}",
+            )
+        )
+    return maps
+
+
+def graph_from_local_maps(maps: Sequence[LocalMap]) -> PoseGraph:
+    """Rebuild a pose graph from 2D pose-only local maps.
+
+    Args:
+        maps: 2D maps holding only poses.
+
+    Returns:
+        The graph of every map's edges, in map order: from the map's frame pose to each of its
+        poses, the pose's estimate as the measurement and the diagonal block of the map's
+        information as the edge's (cross terms dropped).
+
+    Raises:
+        GraphError: a map is 3D or holds features, or the edges make an invalid graph.
+    """
+    f, t, z, info = [], [], [], []
+    for m in maps:
+        if m.dim != 2 or np.any(m.kinds != POSE):
+            raise GraphError(f"map {m.name!r} is not a 2D pose-only map")
+        dense = m.info_dense()
+        for i in range(m.n_vars):
+            sl = m.scalar_slice(i)
+            f.append(m.frame_id)
+            t.append(int(m.ids[i]))
+            z.append(m.x[sl])
+            info.append(dense[sl, sl])
+    return PoseGraph.from_edges(f, t, np.array(z), np.array(info), dim=2)
+
+
+def chunk_end_pose(from_ids: IntArray, to_ids: IntArray, frame: int) -> int:
+    """Return the last pose of the odometry chain ``frame, frame + 1, ...`` present in the edges.
+
+    Args:
+        from_ids, to_ids: ``(m,)`` the edges' pose ids (either direction counts).
+        frame: the chain's first pose.
+
+    Returns:
+        The last pose ``end`` such that every ``(k, k + 1)`` for ``frame <= k < end`` is an
+        edge; ``frame`` itself when ``(frame, frame + 1)`` is not.
+    """
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(from_ids.tolist(), to_ids.tolist(), strict=True)}
+    end = frame
+    while (end, end + 1) in pairs:
+        end += 1
+    return end

@@ -18,6 +18,10 @@ datasets' convention — and one anchor pose held at the origin:
 Each edge's covariance is split block-diagonally (position 2x2, orientation 1x1): the paper's
 assumption. When an edge's information couples position and orientation, the cross terms are
 dropped — the paper's approximation; :attr:`LagoResult.n_coupled_edges` counts such edges.
+
+This module holds the estimator (:func:`lago`, its result :class:`LagoResult`, and the spanning
+tree and regularisation it uses); turning a graph into a local map by LAGO is
+:func:`linear_slam_ros.pose_graph.chunks.lago_local_map`.
 """
 
 from __future__ import annotations
@@ -26,7 +30,7 @@ import logging
 import time
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
+from typing import cast
 
 import numpy as np
 import numpy.typing as npt
@@ -36,78 +40,12 @@ import scipy.sparse.csgraph as csgraph
 from linear_slam_ros.core.errors import GraphError
 from linear_slam_ros.core.geometry import drot2, rot2, wrap_angle
 from linear_slam_ros.core.local_map import POSE, LocalMap
-from linear_slam_ros.core.solvers import solve_sparse_spd
+from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd
+from linear_slam_ros.pose_graph.graph import FloatArray, IntArray, PoseGraph
 
 logger = logging.getLogger(__name__)
 
-FloatArray = npt.NDArray[np.float64]
-IntArray = npt.NDArray[np.int64]
 TWO_PI = 2.0 * np.pi
-
-
-@dataclass(frozen=True, eq=False)
-class PoseGraph:
-    """A 2D pose graph: edges between robot poses.
-
-    Attributes:
-        from_ids, to_ids: ``(m,)`` pose ids; edge ``e`` measures ``to`` from ``from``.
-        measurements: ``(m, 3)`` ``x y phi`` of pose ``to`` seen from pose ``from``.
-        information: ``(m, 3, 3)`` information of each measurement.
-        pose_ids: ``(n + 1,)`` every pose of the graph, sorted (vertices without edges included).
-    """
-
-    from_ids: IntArray
-    to_ids: IntArray
-    measurements: FloatArray
-    information: FloatArray
-    pose_ids: IntArray
-
-    @classmethod
-    def from_edges(
-        cls,
-        from_ids: npt.ArrayLike,
-        to_ids: npt.ArrayLike,
-        measurements: npt.ArrayLike,
-        information: npt.ArrayLike,
-        pose_ids: npt.ArrayLike | None = None,
-    ) -> "PoseGraph":
-        """Build a graph; with ``pose_ids`` given, every edge must name known poses.
-
-        Raises:
-            GraphError: an edge names an unknown pose, or shapes do not match.
-        """
-        f = np.asarray(from_ids, dtype=np.int64)
-        t = np.asarray(to_ids, dtype=np.int64)
-        z = np.asarray(measurements, dtype=np.float64)
-        info = np.asarray(information, dtype=np.float64)
-        m = f.size
-        if t.shape != (m,) or z.shape != (m, 3) or info.shape != (m, 3, 3):
-            raise GraphError(f"pose graph: {m} edges need to ids ({m},), measurements ({m}, 3), information ({m}, 3, 3)")
-        if m == 0:
-            raise GraphError("pose graph has no edges")
-        edge_poses = np.union1d(f, t)
-        if pose_ids is None:
-            poses = edge_poses
-        else:
-            poses = np.unique(np.asarray(pose_ids, dtype=np.int64))
-            unknown = np.setdiff1d(edge_poses, poses)
-            if unknown.size:
-                e = int(np.flatnonzero(np.isin(f, unknown) | np.isin(t, unknown))[0])
-                raise GraphError(
-                    f"edge {e} ({int(f[e])} -> {int(t[e])}) names unknown pose {int(unknown[0])}"
-                    f"{f' (and {unknown.size - 1} more)' if unknown.size > 1 else ''}"
-                )
-        loops = np.flatnonzero(f == t)
-        if loops.size:
-            raise GraphError(f"edge {int(loops[0])} connects pose {int(f[loops[0]])} to itself")
-        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(info))):
-            raise GraphError("pose graph has non-finite measurements or information")
-        return cls(f, t, z, info, poses)
-
-    @property
-    def n_edges(self) -> int:
-        """Number of edges."""
-        return int(self.from_ids.size)
 
 
 @dataclass(frozen=True)
@@ -115,11 +53,13 @@ class LagoResult:
     """LAGO's estimate.
 
     Attributes:
-        map: poses in the frame of the anchor, with information ``B P_z^-1 B^T``.
-        theta_phase1: ``(n,)`` orientations of phase 1, in the order of ``map``'s poses.
+        map: every pose but the anchor, ``x y phi`` (m, rad) in the frame of the anchor pose,
+            with information ``B P_z^-1 B^T`` (``end_id`` None, name ``"lago"``).
+        theta_phase1: ``(n,)`` orientations of phase 1 (rad, not wrapped), in the order of
+            ``map``'s poses.
         chord_corrections: ``(m,)`` multiples of ``2 pi`` added to each edge's orientation.
         n_coupled_edges: edges whose information coupled position and orientation (dropped).
-        seconds: wall time of the estimate.
+        seconds: wall time of the estimate (s).
     """
 
     map: LocalMap
@@ -130,8 +70,18 @@ class LagoResult:
 
 
 def _split_covariances(information: FloatArray) -> tuple[FloatArray, FloatArray, int]:
-    """Return per-edge position information (m, 2, 2), orientation information (m,), and how
-    many edges had position-orientation cross terms (block-diagonal approximation)."""
+    """Split each edge's covariance block-diagonally (the paper's assumption).
+
+    Args:
+        information: ``(m, 3, 3)`` information of each edge (``x y phi``).
+
+    Returns:
+        Per-edge position information ``(m, 2, 2)`` (1/m²), orientation information ``(m,)``
+        (1/rad²), and how many edges had position-orientation cross terms (dropped).
+
+    Raises:
+        GraphError: an edge's information is singular or not positive definite.
+    """
     try:
         cov = np.linalg.inv(information)
     except np.linalg.LinAlgError:
@@ -140,16 +90,28 @@ def _split_covariances(information: FloatArray) -> tuple[FloatArray, FloatArray,
     var_theta = cov[:, 2, 2]
     if np.any(var_theta <= 0) or np.any(np.linalg.det(cov[:, :2, :2]) <= 0):
         raise GraphError("an edge's information matrix is not positive definite")
-    return np.linalg.inv(cov[:, :2, :2]), 1.0 / var_theta, coupled
+    return np.linalg.inv(cov[:, :2, :2]), cast(FloatArray, 1.0 / var_theta), coupled
 
 
 def spanning_tree(n_nodes: int, tails: IntArray, heads: IntArray, node_ids: IntArray) -> npt.NDArray[np.bool_]:
-    """Return a mask of tree edges: the odometry edges (consecutive ids) if they span, else BFS."""
+    """Return a spanning tree of the graph as a mask of its edges.
+
+    The odometry edges (between consecutive pose ids) when they form a spanning tree, else a
+    breadth-first tree from node 0.
+
+    Args:
+        n_nodes: number of nodes.
+        tails, heads: ``(m,)`` node indices (``0 .. n_nodes - 1``) of each edge's ends.
+        node_ids: ``(n_nodes,)`` pose id of each node.
+
+    Returns:
+        ``(m,)`` True for the tree's edges.
+    """
     odometry = np.abs(node_ids[tails] - node_ids[heads]) == 1
     if _spans(n_nodes, tails[odometry], heads[odometry]) and _is_forest(n_nodes, tails[odometry], heads[odometry]):
         return odometry
     adjacency: list[list[tuple[int, int]]] = [[] for _ in range(n_nodes)]
-    for e, (a, b) in enumerate(zip(tails.tolist(), heads.tolist())):
+    for e, (a, b) in enumerate(zip(tails.tolist(), heads.tolist(), strict=True)):
         adjacency[a].append((b, e))
         adjacency[b].append((a, e))
     tree = np.zeros(tails.size, dtype=bool)
@@ -167,13 +129,14 @@ def spanning_tree(n_nodes: int, tails: IntArray, heads: IntArray, node_ids: IntA
 
 
 def _spans(n_nodes: int, tails: IntArray, heads: IntArray) -> bool:
+    """Whether the edges ``tails[e] - heads[e]`` connect all ``n_nodes`` nodes."""
     graph = sp.coo_matrix((np.ones(tails.size), (tails, heads)), shape=(n_nodes, n_nodes))
     return csgraph.connected_components(graph, directed=False)[0] == 1
 
 
 def _is_forest(n_nodes: int, tails: IntArray, heads: IntArray) -> bool:
-    # a spanning set of n - 1 distinct edges is a tree
-    pairs = {(min(a, b), max(a, b)) for a, b in zip(tails.tolist(), heads.tolist())}
+    """Whether the edges are ``n_nodes - 1`` distinct pairs (a spanning set of them is a tree)."""
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(tails.tolist(), heads.tolist(), strict=True)}
     return len(pairs) == tails.size == n_nodes - 1
 
 
@@ -184,6 +147,16 @@ def regularize(
 
     Orientations are integrated along the tree from the anchor; for a chord ``(i, j)`` the
     fundamental cycle's sum is ``theta_i + delta_ij - theta_j``, rounded to a multiple of 2 pi.
+
+    Args:
+        n_nodes: number of nodes.
+        tails, heads: ``(m,)`` node indices of each edge's ends.
+        delta: ``(m,)`` each edge's relative orientation (rad).
+        tree: ``(m,)`` mask of the spanning tree's edges (see :func:`spanning_tree`).
+        anchor: node index held at orientation 0.
+
+    Returns:
+        ``(m,)`` integer ``k`` per edge, 0 on tree edges.
     """
     theta = np.full(n_nodes, np.nan)
     theta[anchor] = 0.0
@@ -207,14 +180,23 @@ def regularize(
 
 
 def lago(graph: PoseGraph, anchor_id: int | None = None, regularization: bool = True) -> LagoResult:
-    """Estimate every pose of a 2D pose graph in the frame of ``anchor_id`` (default: smallest id).
+    """Estimate every pose of a 2D pose graph in the frame of one of its poses.
 
-    ``regularization=False`` skips the 2 k pi chord corrections (for demonstrating why they matter).
+    Args:
+        graph: a connected 2D graph.
+        anchor_id: the pose held at the origin (default: the smallest pose id).
+        regularization: ``False`` skips the 2 k pi chord corrections (for demonstrating why
+            they matter).
+
+    Returns:
+        The estimate of every other pose in the anchor's frame, with its information.
 
     Raises:
-        GraphError: the graph is disconnected, or the anchor is not one of its poses.
+        GraphError: the graph is 3D or disconnected, or the anchor is not one of its poses.
     """
     t0 = time.perf_counter()
+    if graph.dim != 2:
+        raise GraphError(f"{graph.name}: LAGO is 2D only; this graph is {graph.dim}D")
     ids = graph.pose_ids
     anchor_id = int(ids[0]) if anchor_id is None else int(anchor_id)
     index = {int(p): k for k, p in enumerate(ids.tolist())}
@@ -283,7 +265,7 @@ def lago(graph: PoseGraph, anchor_id: int | None = None, regularization: bool = 
     i_rt = -(a2_w @ jac)
     jt_w = jac.T @ w_g
     i_tt = lap + jt_w @ jac
-    info = sp.bmat([[i_rr, i_rt], [i_rt.T, i_tt]], format="csc")
+    info = cast(sp.csc_matrix, sp.bmat([[i_rr, i_rt], [i_rt.T, i_tt]], format="csc"))
     dg = delta_g.ravel()
     rhs_r = a2_w @ (dg - jac @ theta_hat)
     rhs_t = -(jt_w @ dg) + i_tt @ theta_hat
@@ -295,118 +277,6 @@ def lago(graph: PoseGraph, anchor_id: int | None = None, regularization: bool = 
     perm = np.column_stack([2 * np.arange(n), 2 * np.arange(n) + 1, 2 * n + np.arange(n)]).ravel()
     info_p = info[perm][:, perm].tocsr()
     pose_ids = ids[keep]
-    from linear_slam_ros.core.solvers import DENSE_MAX
-
     stored = info_p.toarray() if info_p.shape[0] <= DENSE_MAX else info_p
     result = LocalMap.trusted(2, anchor_id, None, pose_ids, np.full(n, POSE, dtype=np.int8), x, stored, "lago")
     return LagoResult(result, theta_hat, k, coupled, time.perf_counter() - t0)
-
-
-def edge_maps(graph: PoseGraph) -> list[LocalMap]:
-    """Return each edge as a one-pose local map (for χ² and Gauss-Newton on the graph objective)."""
-    maps = []
-    for e in range(graph.n_edges):
-        maps.append(
-            LocalMap.trusted(
-                2, int(graph.from_ids[e]), int(graph.to_ids[e]), graph.to_ids[e : e + 1].copy(),
-                np.array([POSE], dtype=np.int8), graph.measurements[e].copy(), graph.information[e], f"edge_{e}",
-            )
-        )
-    return maps
-
-
-def read_g2o(path: Path) -> PoseGraph:
-    """Read ``VERTEX_SE2`` / ``EDGE_SE2`` lines of a g2o file (other lines are ignored).
-
-    ``EDGE_SE2 i j x y theta I11 I12 I13 I22 I23 I33`` (upper triangle of the information).
-
-    Raises:
-        GraphError: malformed lines or edges to unknown vertices.
-    """
-    vertices: list[int] = []
-    f, t, z, info = [], [], [], []
-    try:
-        lines = Path(path).read_text().splitlines()
-    except OSError as exc:
-        raise GraphError(f"cannot read {path}: {exc}") from None
-    for n, line in enumerate(lines, start=1):
-        parts = line.split()
-        if not parts:
-            continue
-        try:
-            if parts[0] == "VERTEX_SE2":
-                vertices.append(int(parts[1]))
-            elif parts[0] == "EDGE_SE2":
-                if len(parts) != 12:
-                    raise ValueError(f"EDGE_SE2 needs 11 values, got {len(parts) - 1}")
-                v = [float(p) for p in parts[3:]]
-                u = v[3:]
-                f.append(int(parts[1]))
-                t.append(int(parts[2]))
-                z.append(v[:3])
-                info.append([[u[0], u[1], u[2]], [u[1], u[3], u[4]], [u[2], u[4], u[5]]])
-        except (ValueError, IndexError) as exc:
-            raise GraphError(f"{path}:{n}: {exc}") from None
-    return PoseGraph.from_edges(f, t, np.array(z).reshape(-1, 3), np.array(info).reshape(-1, 3, 3), vertices or None)
-
-
-def write_g2o(path: Path, graph: PoseGraph, poses: dict[int, FloatArray] | None = None) -> None:
-    """Write a pose graph (and optional vertex estimates) in g2o's SE2 format."""
-    with open(path, "w") as fh:
-        for p in graph.pose_ids.tolist():
-            x = poses.get(p, np.zeros(3)) if poses else np.zeros(3)
-            fh.write(f"VERTEX_SE2 {p} {x[0]:.17g} {x[1]:.17g} {x[2]:.17g}\n")
-        for e in range(graph.n_edges):
-            i = graph.information[e]
-            z = graph.measurements[e]
-            fh.write(
-                f"EDGE_SE2 {int(graph.from_ids[e])} {int(graph.to_ids[e])} {z[0]:.17g} {z[1]:.17g} {z[2]:.17g} "
-                f"{i[0, 0]:.17g} {i[0, 1]:.17g} {i[0, 2]:.17g} {i[1, 1]:.17g} {i[1, 2]:.17g} {i[2, 2]:.17g}\n"
-            )
-
-
-def graph_from_local_maps(maps: list[LocalMap]) -> PoseGraph:
-    """Rebuild a pose graph from pose-only local maps: map ``i`` holds the edges from its frame
-    pose to each of its poses (information: the diagonal blocks of the map's)."""
-    f, t, z, info = [], [], [], []
-    for m in maps:
-        if m.dim != 2 or np.any(m.kinds != POSE):
-            raise GraphError(f"map {m.name!r} is not a 2D pose-only map")
-        dense = m.info_dense()
-        for i in range(m.n_vars):
-            sl = m.scalar_slice(i)
-            f.append(m.frame_id)
-            t.append(int(m.ids[i]))
-            z.append(m.x[sl])
-            info.append(dense[sl, sl])
-    return PoseGraph.from_edges(f, t, np.array(z), np.array(info))
-
-
-def chunk_end_pose(from_ids: IntArray, to_ids: IntArray, frame: int) -> int:
-    """Return the last pose of the odometry chain ``frame, frame + 1, ...`` present in the edges."""
-    pairs = {(min(a, b), max(a, b)) for a, b in zip(from_ids.tolist(), to_ids.tolist())}
-    end = frame
-    while (end, end + 1) in pairs:
-        end += 1
-    return end
-
-
-def lago_local_map(chunk: object) -> LocalMap:
-    """Return the pose-only local map of a 2D pose-graph chunk by LAGO, in its first edge's frame.
-
-    Raises:
-        GraphError: the chunk is 3D, or disconnected.
-    """
-    from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
-
-    assert isinstance(chunk, PoseGraphChunk)
-    if chunk.dim != 2:
-        raise GraphError(f"pose-graph chunk {chunk.seq}: LAGO is 2D only; this chunk is {chunk.dim}D and not a star")
-    graph = PoseGraph.from_edges(chunk.from_ids, chunk.to_ids, chunk.measurements, chunk.information)
-    frame = int(chunk.from_ids[0])
-    result = lago(graph, anchor_id=frame).map
-    end = chunk_end_pose(chunk.from_ids, chunk.to_ids, frame)
-    return LocalMap(
-        2, frame, end if end != frame else None, result.ids, result.kinds, result.x, result.info,
-        name=f"pose_graph chunk {chunk.seq} (LAGO)",
-    )

@@ -8,18 +8,18 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Iterator, Sequence
 
 import numpy as np
 
-from linear_slam_ros.io.datasets import read_dataset
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.core.geometry import pose_size
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
+from linear_slam_ros.io.datasets import read_dataset
+from linear_slam_ros.pose_graph.graph import PoseGraph
 from linear_slam_ros.ros.bagio import write_messages
-from msg_adapters.layout import Stamp, encode_chunk, encode_map
+from msg_adapters.layout import Encoded, Stamp, encode_chunk, encode_map
 
 logger = logging.getLogger(__name__)
 
@@ -27,9 +27,9 @@ START_NS = 1_700_000_000 * 10**9
 """Bag time of the first message (a fixed, recognisable instant)."""
 
 
-def chunk_of(maps: Sequence[LocalMap], seq: int) -> PoseGraphChunk:
-    """Return the pose-graph chunk of consecutive pose-only local maps: each map's edges from its
-    frame pose to its poses (information: the map's diagonal blocks; cross terms dropped)."""
+def chunk_of(maps: Sequence[LocalMap], seq: int) -> PoseGraph:
+    """Return pose-graph chunk ``seq`` of consecutive pose-only local maps: each map's edges from
+    its frame pose to its poses (information: the map's diagonal blocks; cross terms dropped)."""
     p = pose_size(maps[0].dim)
     f, t, z, info = [], [], [], []
     for m in maps:
@@ -39,12 +39,14 @@ def chunk_of(maps: Sequence[LocalMap], seq: int) -> PoseGraphChunk:
             t.append(int(m.ids[i]))
             z.append(m.x[i * p : (i + 1) * p])
             info.append(dense[i * p : (i + 1) * p, i * p : (i + 1) * p])
-    return PoseGraphChunk(maps[0].dim, seq, np.array(f, np.int64), np.array(t, np.int64), np.array(z), np.array(info))
+    return PoseGraph.from_edges(
+        np.array(f, np.int64), np.array(t, np.int64), np.array(z), np.array(info), dim=maps[0].dim, name=f"pose-graph chunk {seq}"
+    )
 
 
 def records(
     maps: Sequence[LocalMap], rate_hz: float, topic: str, as_pose_graph: bool, maps_per_chunk: int = 1
-) -> Iterator[tuple[str, int, object]]:
+) -> Iterator[tuple[str, int, Encoded]]:
     """Yield ``(topic, time_ns, encoded)`` messages, ``seq`` 1..N, at ``rate_hz``.
 
     Local maps go one per message; as pose-graph chunks, ``maps_per_chunk`` consecutive maps'
@@ -56,7 +58,7 @@ def records(
         t = START_NS + (i - 1) * period
         stamp = Stamp(t // 10**9, t % 10**9)
         if as_pose_graph:
-            yield topic, t, encode_chunk(chunk_of(group, i), stamp)
+            yield topic, t, encode_chunk(chunk_of(group, i), i, stamp)
         else:
             yield topic, t, encode_map(group[0], i, stamp)
 
@@ -80,7 +82,9 @@ def make_bag(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point."""
-    ap = argparse.ArgumentParser(prog="bag_from_dataset", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="bag_from_dataset", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("dataset", type=Path, help="folder of localmap_<i>.txt or a .tar.xz archive")
     ap.add_argument("--out", type=Path, required=True, help="bag folder to create (e.g. bags/vicpark200)")
     ap.add_argument("--rate", type=float, default=10.0, help="message rate in bag time, Hz")

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import shutil
+from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Iterable, Iterator, NamedTuple
+from typing import NamedTuple
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
@@ -24,7 +25,13 @@ class BagRecord(NamedTuple):
 
 
 def qos(latched: bool) -> Qos:
-    """Return the offered QoS of a topic: reliable; transient-local keep-last-1 when latched."""
+    """Return the offered QoS of a topic as bag metadata records it.
+
+    The rosbags form of :func:`linear_slam_ros.ros.qos.latched_qos` (reliable, transient local,
+    keep last 1) when ``latched``, else of :func:`~linear_slam_ros.ros.qos.inbound_qos`
+    (reliable, volatile, keep all; depth 0 as rosbag2 writes it). Kept here, without rclpy,
+    so bags can be written and read with no ROS install.
+    """
     zero = QosTime(sec=0, nsec=0)
     return Qos(
         history=QosHistory.KEEP_LAST if latched else QosHistory.KEEP_ALL,

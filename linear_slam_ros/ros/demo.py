@@ -13,36 +13,25 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
-import rclpy
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import Float64MultiArray
-
-from linear_slam_ros.cli.main import write_result
-from linear_slam_ros.io.datasets import read_dataset
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.plots import plot_map
+from linear_slam_ros.io.datasets import read_dataset
+from linear_slam_ros.io.results import write_result
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import read_messages, write_messages
 from linear_slam_ros.ros.player import play
-from msg_adapters import decode_map
+from linear_slam_ros.ros.process import loopback_env, stop_process
+from linear_slam_ros.ros.spin import LatestMessage, node_session
+from msg_adapters import MapMessage, decode_map
 from msg_adapters.bags import bag_parts, deserialize
 
 DEFAULT_DATASET = Path("../shared/datasets/VicPark_200_local_maps.tar.xz")
-
-
-def loopback_env(domain_id: int | None = None) -> dict[str, str]:
-    """Return this process's environment with DDS confined to loopback and a domain id set."""
-    env = dict(os.environ)
-    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.setdefault("ROS_DOMAIN_ID", str(domain_id if domain_id is not None else 42))
-    return env
 
 
 def joiner_command() -> list[str]:
@@ -66,52 +55,39 @@ def start_joiner(params: dict[str, object], env: dict[str, str]) -> subprocess.P
     return subprocess.Popen(cmd, env=env)
 
 
-def stop(process: subprocess.Popen[bytes], timeout_s: float = 10.0) -> int:
-    """Stop a process with Ctrl-C (SIGINT), killing it if it does not exit; return its code."""
-    if process.poll() is None:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
-    return int(process.returncode)
+def decode_global_map(raw: bytes) -> MapMessage:
+    """Return the decoded ``global_map`` message of its CDR bytes."""
+    return decode_map(*bag_parts(deserialize(raw)))
 
 
-def run_demo(dataset: Path, bag: Path, out: Path, mode: str = "sequential", rate_factor: float = 0.0, timeout_s: float = 300.0) -> dict[str, object]:
+def run_demo(
+    dataset: Path, bag: Path, out: Path, mode: str = "sequential", rate_factor: float = 0.0, timeout_s: float = 300.0
+) -> dict[str, object]:
     """Replay ``bag`` through a joiner process; write and return the report."""
     if not (bag / "metadata.yaml").exists():
         make_bag(dataset, bag)
     records = list(read_messages(bag))
     n_sent = len(records)
-    os.environ.update(loopback_env())
+    os.environ.update(loopback_env())  # this process's DDS too
     joiner = start_joiner({"mode": mode, "output_frame": "end_pose", "publish_rate": 20.0}, dict(os.environ))
-    rclpy.init()
-    node = rclpy.create_node("demo")
-    latest: dict[str, object] = {}
-    qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    node.create_subscription(Float64MultiArray, "global_map", lambda raw: latest.update(raw=bytes(raw), t=time.monotonic()), qos, raw=True)
+
+    def all_handled(m: MapMessage) -> bool:
+        return m.n_submaps >= n_sent or bool(m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent)
+
     try:
-        t0 = time.monotonic()
-        play(node, records, rate_factor=rate_factor, wait_s=60.0)
-        deadline = time.monotonic() + timeout_s
-        message = None
-        while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.1)
-            if "raw" in latest:
-                message = decode_map(*bag_parts(deserialize(latest["raw"])))  # type: ignore[arg-type]
-                if message.n_submaps >= n_sent or (message.stats and message.stats["n_joined"] + message.stats["n_rejected"] >= n_sent):
-                    break
-            if joiner.poll() is not None:
-                raise RuntimeError(f"joiner exited with code {joiner.returncode}")
-        if message is None:
-            raise RuntimeError(f"no global_map received within {timeout_s:.0f} s")
-        seconds = float(latest["t"]) - t0  # type: ignore[arg-type]
+        with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_map) as latest:
+            t0 = time.monotonic()
+            play(node, records, rate_factor=rate_factor, wait_s=60.0)
+            try:
+                latest.wait(all_handled, timeout_s, joiner)
+            except ChildProcessError:
+                raise RuntimeError(f"joiner exited with code {joiner.returncode}") from None
+            message, raw = latest.value, latest.raw
+            if message is None or raw is None:
+                raise RuntimeError(f"no global_map received within {timeout_s:.0f} s")
+            seconds = latest.received_at - t0
     finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-        code = stop(joiner)
+        code = stop_process(joiner)
     maps = read_dataset(dataset).maps
     origin = maps[0].frame_id
     in_first = write_result(out, message.local_map, origin)
@@ -132,8 +108,9 @@ def run_demo(dataset: Path, bag: Path, out: Path, mode: str = "sequential", rate
         "joiner_exit_code": code,
     }
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
-    plot_map(in_first, out / "map.png", f"{report['dataset']}: {message.n_submaps} submaps joined ({mode}), χ² {report['chi2']:.1f}")
-    write_messages(out / "global_map_bag", [("global_map", 0, latest["raw"])], latched={"global_map"}, overwrite=True)  # type: ignore[list-item]
+    title = f"{report['dataset']}: {message.n_submaps} submaps joined ({mode}), χ² {report['chi2']:.1f}"
+    plot_map(in_first, out / "map.png", title)
+    write_messages(out / "global_map_bag", [("global_map", 0, raw)], latched={"global_map"}, overwrite=True)
     return report
 
 

@@ -6,6 +6,9 @@ Topics, services and parameters are tabulated in the README.
 
 from __future__ import annotations
 
+import dataclasses
+import enum
+import sys
 import threading
 import time
 from pathlib import Path
@@ -25,50 +28,32 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from linear_slam_ros.cli.main import write_feature_result, write_result
-from linear_slam_ros.core.errors import LinearSlamError
-from linear_slam_ros.feature_only.maps import FeatureMap
-from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.joiner.joiner import OUTPUT_FRAMES, Joiner, JoinerState, global_feature_map_of, global_map_of
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError
+from linear_slam_ros.core.runtime import set_blas_threads, tune_allocator
+from linear_slam_ros.io.results import write_map
+from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
+from linear_slam_ros.joiner.joiner import Joiner, JoinerState, global_result
+from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
-from linear_slam_ros.evaluation.runner import JoinMethod, MapType
-from linear_slam_ros.core.runtime import blas_threads_for, set_blas_threads, tune_allocator
-from msg_adapters import MAP_KIND_GLOBAL, Encoded, Stamp, decode_chunk, decode_map, encode_feature_map, encode_map
+from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
+from msg_adapters.global_map import encode_global
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import (
-    current_pose_msg, feature_covariances, feature_map_covariances, feature_markers, path_msg, point_markers,
-)
+from msg_adapters.views import map_views
 
 NODE_NAME = "joiner"
 PUBLISH_DUTY = 0.25
 """Largest fraction of wall time spent computing outputs (the rest is left to joining)."""
 
-# name: (default, description, read_only, range)
-PARAMETERS: dict[str, tuple[Any, str, bool, tuple[float, float] | None]] = {
-    "mode": ("sequential", "joining method: 'sequential' (exact, robocentric end-pose frame) or 'online-dc' "
-             "(online divide and conquer, for long streams)", True, None),
-    "map_type": ("as-is", "'as-is' joins the submaps' variables; 'feature-only' marginalises the poses of "
-                 "pose-feature submaps and joins feature-only maps in feature-defined frames (D-SLAM)", True, None),
-    "output_frame": ("end_pose", "frame of the global_map message: 'end_pose' (robocentric, newest end pose) "
-                     "or 'first_pose'", False, None),
-    "publish_rate": (2.0, "maximum rate of the output topics, Hz", False, (0.05, 100.0)),
-    "map_frame": ("map", "frame_id of the viewing topics (the first pose's frame)", False, None),
-    "queue_depth": (0, "subscription history depth; 0 keeps all (reliable, no submap dropped)", True, (0, 1_000_000)),
-    "reorder_window": (100, "early submaps held while waiting for a missing sequence number", False, (1, 1_000_000)),
-    "ellipse_max_state": (1500, "largest global state (scalars) for which feature covariance ellipses are drawn",
-                          False, (0, 1_000_000)),
-    "summary_period": (5.0, "seconds between info-level summary lines and /diagnostics", False, (0.1, 3600.0)),
-    "save_directory": ("saved_map", "folder where ~/save_map writes poses.txt, features.txt and a bag", False, None),
-}
 
 
-def _descriptor(name: str, description: str, read_only: bool, bounds: tuple[float, float] | None, default: Any) -> ParameterDescriptor:
-    desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
-    if bounds is not None and isinstance(default, int) and not isinstance(default, bool):
-        desc.integer_range = [IntegerRange(from_value=int(bounds[0]), to_value=int(bounds[1]), step=1)]
-    elif bounds is not None:
-        desc.floating_point_range = [FloatingPointRange(from_value=float(bounds[0]), to_value=float(bounds[1]), step=0.0)]
+def _descriptor(decl: ParameterDeclaration) -> ParameterDescriptor:
+    spec = decl.spec
+    description = spec.description + (f" (one of {list(decl.choices)})" if decl.choices else "")
+    desc = ParameterDescriptor(name=decl.name, description=description, read_only=spec.read_only)
+    if spec.bounds is not None and isinstance(decl.default, int) and not isinstance(decl.default, bool):
+        desc.integer_range = [IntegerRange(from_value=int(spec.bounds[0]), to_value=int(spec.bounds[1]), step=1)]
+    elif spec.bounds is not None:
+        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.bounds[0]), to_value=float(spec.bounds[1]), step=0.0)]
     return desc
 
 
@@ -77,24 +62,16 @@ class JoinerNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        for name, (default, description, read_only, bounds) in PARAMETERS.items():
-            self.declare_parameter(name, default, _descriptor(name, description, read_only, bounds, default))
-        mode = self.get_parameter("mode").value
-        if mode not in (JoinMethod.SEQUENTIAL.value, JoinMethod.ONLINE_DC.value):
-            self.get_logger().error(f"parameter mode={mode!r} is not 'sequential' or 'online-dc'; using 'sequential'")
-            mode = JoinMethod.SEQUENTIAL.value
-        map_type = self.get_parameter("map_type").value
-        if map_type not in [t.value for t in MapType]:
-            self.get_logger().error(f"parameter map_type={map_type!r} is not 'as-is' or 'feature-only'; using 'as-is'")
-            map_type = MapType.AS_IS.value
-        if self.get_parameter("output_frame").value not in OUTPUT_FRAMES:
-            self.get_logger().error(f"parameter output_frame must be one of {OUTPUT_FRAMES}; using 'end_pose'")
-            self.set_parameters([Parameter("output_frame", value="end_pose")])
+        for decl in parameter_declarations():
+            self.declare_parameter(decl.name, decl.default, _descriptor(decl))
+        # Raises ConfigError, naming the parameter, its value and the allowed values: main() exits with 2.
+        config = JoinerConfig.from_mapping({d.name: self.get_parameter(d.name).value for d in parameter_declarations()})
+        self.config = config
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tune_allocator()
-        set_blas_threads(blas_threads_for(mode))
+        set_blas_threads(get_strategy(config.mode, config.map_type).blas_threads)
 
-        self.joiner = Joiner(JoinMethod(mode), MapType(map_type), reorder_window=int(self.get_parameter("reorder_window").value))
+        self.joiner = Joiner(config.mode, config.map_type, reorder_window=config.reorder_window)
         self.joiner.on_reject = lambda reason, message: self.get_logger().warning(message)
         self.n_received = 0
         self._version = 0  # bumped on every state change; the publisher compares it
@@ -102,7 +79,7 @@ class JoinerNode(Node):
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
         self._next_publish = 0.0
 
-        depth = int(self.get_parameter("queue_depth").value)
+        depth = config.queue_depth
         inbound = QoSProfile(
             history=HistoryPolicy.KEEP_ALL if depth == 0 else HistoryPolicy.KEEP_LAST,
             depth=max(depth, 1),
@@ -124,24 +101,33 @@ class JoinerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=joining_group)
         self.create_service(Trigger, "~/save_map", self._on_save_map, callback_group=output_group)
-        self._timer = self.create_timer(1.0 / float(self.get_parameter("publish_rate").value), self._on_publish_timer, callback_group=output_group)
-        self.create_timer(float(self.get_parameter("summary_period").value), self._on_summary_timer, callback_group=output_group)
+        self._timer = self.create_timer(1.0 / config.publish_rate, self._on_publish_timer, callback_group=output_group)
+        self.create_timer(config.summary_period, self._on_summary_timer, callback_group=output_group)
         self.get_logger().info(
-            f"joiner ready: mode={mode}, map_type={map_type}, output_frame={self.get_parameter('output_frame').value}, "
-            f"map_frame={self.get_parameter('map_frame').value}, queue_depth={depth or 'keep all'}"
+            f"joiner ready: mode={config.mode.value}, map_type={config.map_type.value}, "
+            f"output_frame={config.output_frame.value}, map_frame={config.map_frame}, queue_depth={depth or 'keep all'}"
         )
 
     # ------------------------------------------------------------------ parameters
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        try:
+            changed = JoinerConfig.from_mapping({**self._config_values(), **{p.name: p.value for p in params}})
+        except ConfigError as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        self.config = changed
         for p in params:
-            if p.name == "output_frame" and p.value not in OUTPUT_FRAMES:
-                return SetParametersResult(successful=False, reason=f"output_frame must be one of {OUTPUT_FRAMES}, got {p.value!r}")
             if p.name == "publish_rate":
                 self._timer.timer_period_ns = int(1e9 / float(p.value))
             if p.name == "reorder_window":
                 self.joiner.reorder_window = int(p.value)
         return SetParametersResult(successful=True)
+
+    def _config_values(self) -> dict[str, Any]:
+        """Return the current configuration as parameter values (enums as strings)."""
+        return {
+            k: v.value if isinstance(v, enum.Enum) else v for k, v in dataclasses.asdict(self.config).items()
+        }
 
     # ------------------------------------------------------------------ inputs
 
@@ -189,16 +175,13 @@ class JoinerNode(Node):
     def _on_save_map(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             state = self.joiner.state
-        folder = Path(str(self.get_parameter("save_directory").value))
+        folder = Path(self.config.save_directory)
         try:
-            joined = self._global(state, "first_pose")
+            joined = global_result(state, OutputFrame.FIRST_POSE)
             if joined is None:
                 response.success, response.message = False, "nothing to save: no submap joined yet"
                 return response
-            if isinstance(joined, FeatureMap):
-                write_feature_result(folder, joined)
-            else:
-                write_result(folder, joined, joined.frame_id)
+            write_map(joined, folder, state.first_pose_id)
             from linear_slam_ros.ros.bagio import write_messages
 
             encoded = self._encode(joined, state, self.joiner.stats())
@@ -232,37 +215,21 @@ class JoinerNode(Node):
         # PUBLISH_DUTY of the time, whatever publish_rate asks for.
         self._next_publish = now + (time.monotonic() - now) / PUBLISH_DUTY
 
-    @staticmethod
-    def _global(state: JoinerState, output_frame: str) -> LocalMap | FeatureMap | None:
-        """Return the global map (``None`` while there is none)."""
-        if state.map_type is MapType.FEATURE_ONLY:
-            return global_feature_map_of(state)
-        return global_map_of(state, output_frame)
-
-    def _encode(self, joined: LocalMap | FeatureMap, state: JoinerState, stats: dict[str, float]) -> Encoded:
-        args = (state.last_seq or 0, self._stamp(), MAP_KIND_GLOBAL, state.n_joined, stats)
-        return encode_feature_map(joined, *args) if isinstance(joined, FeatureMap) else encode_map(joined, *args)
+    def _encode(self, joined: Any, state: JoinerState, stats: dict[str, float]) -> Encoded:
+        return encode_global(joined, state.last_seq or 0, self._stamp(), state.n_joined, stats)
 
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
-        joined = self._global(state, str(self.get_parameter("output_frame").value))
+        config = self.config
+        joined = global_result(state, config.output_frame)
         if joined is None:  # feature-only: no group defines a feature frame yet
             return
         self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
-        ros_stamp = self.get_clock().now().to_msg()
-        map_frame = str(self.get_parameter("map_frame").value)
-        max_state = int(self.get_parameter("ellipse_max_state").value)
-        if isinstance(joined, FeatureMap):  # no poses: features only, in the feature frame
-            covs = feature_map_covariances(joined, max_state)
-            self.pub_markers.publish(point_markers(joined.dim, joined.positions(), map_frame, ros_stamp, covs))
-            return
-        first = state.first_pose_id
-        assert first is not None
-        in_first = joined if joined.frame_id == first else change_frame(joined, first)
-        self.pub_path.publish(path_msg(in_first, map_frame, ros_stamp))
-        covs = feature_covariances(in_first, max_state)
-        self.pub_markers.publish(feature_markers(in_first, map_frame, ros_stamp, covs))
-        if joined.end_id is not None:
-            self.pub_pose.publish(current_pose_msg(in_first, joined.end_id, map_frame, ros_stamp))
+        views = map_views(joined, state.first_pose_id, config.map_frame, self.get_clock().now().to_msg(), config.ellipse_max_state)
+        if views.path is not None:
+            self.pub_path.publish(views.path)
+        self.pub_markers.publish(views.markers)
+        if views.pose is not None:
+            self.pub_pose.publish(views.pose)
 
     def _on_summary_timer(self) -> None:
         with self._lock:
@@ -289,7 +256,7 @@ def status_header(node: Node) -> Any:
 
 
 def main(args: list[str] | None = None) -> None:
-    """Start the joiner; Ctrl-C stops it cleanly."""
+    """Start the joiner; Ctrl-C stops it cleanly; an invalid parameter exits with code 2."""
     rclpy.init(args=args)
     node = None
     try:
@@ -297,6 +264,10 @@ def main(args: list[str] | None = None) -> None:
         executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()
+    except ConfigError as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"invalid configuration: {exc}")
+        rclpy.try_shutdown()
+        sys.exit(2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -11,40 +11,18 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import rclpy
 from rclpy.node import Node
 from rclpy.publisher import Publisher
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
-
-
-def publisher_qos(latched: bool) -> QoSProfile:
-    """Return the QoS a player publishes a bag topic with."""
-    if latched:
-        return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
-
-
-def wait_for_subscribers(node: Node, publishers: dict[str, Publisher], timeout_s: float) -> None:
-    """Spin until each publisher sees a subscriber.
-
-    Raises:
-        TimeoutError: some topic had no subscriber within ``timeout_s``.
-    """
-    deadline = time.monotonic() + timeout_s
-    while any(p.get_subscription_count() == 0 for p in publishers.values()):
-        if time.monotonic() > deadline:
-            missing = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
-            raise TimeoutError(f"no subscriber on {missing} after {timeout_s:.0f} s")
-        rclpy.spin_once(node, timeout_sec=0.05)
+from linear_slam_ros.ros.qos import bag_topic_qos
+from linear_slam_ros.ros.spin import node_session, wait_for_subscribers
 
 
 def play(node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wait_s: float = 30.0) -> float:
@@ -59,7 +37,7 @@ def play(node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wai
     publishers: dict[str, Publisher] = {}
     for r in records:
         if r.topic not in publishers:
-            publishers[r.topic] = node.create_publisher(Float64MultiArray, r.topic, publisher_qos(r.latched))
+            publishers[r.topic] = node.create_publisher(Float64MultiArray, r.topic, bag_topic_qos(r.latched))
     wait_for_subscribers(node, publishers, wait_s)
     start_wall = time.monotonic()
     start_bag = records[0].time_ns if records else 0
@@ -89,20 +67,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LinearSlamError as exc:
         print(f"bag_player: {exc}", file=sys.stderr)
         return 2
-    rclpy.init(args=argv)
-    node = rclpy.create_node("bag_player")
-    try:
-        seconds = play(node, records, args.rate_factor, args.wait)
-        node.get_logger().info(f"published {len(records)} messages in {seconds:.2f} s")
-        return 0
-    except TimeoutError as exc:
-        node.get_logger().error(str(exc))
-        return 1
-    except KeyboardInterrupt:
-        return 130
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    with node_session("bag_player", argv) as node:
+        try:
+            seconds = play(node, records, args.rate_factor, args.wait)
+            node.get_logger().info(f"published {len(records)} messages in {seconds:.2f} s")
+            return 0
+        except TimeoutError as exc:
+            node.get_logger().error(str(exc))
+            return 1
+        except KeyboardInterrupt:
+            return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

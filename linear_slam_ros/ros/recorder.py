@@ -8,17 +8,18 @@ writes every message as received; stops after N messages, S seconds, or Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
-import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Sequence
 
 import rclpy
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 
 from linear_slam_ros.ros.bagio import write_messages
+from linear_slam_ros.ros.qos import recorder_qos
+from linear_slam_ros.ros.spin import node_session, spin_until
 
 
 class Recorder:
@@ -26,14 +27,15 @@ class Recorder:
 
     def __init__(self, node: Node, topics: Sequence[str]) -> None:
         self.records: list[tuple[str, int, bytes]] = []
-        qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
         for topic in topics:
-            node.create_subscription(Float64MultiArray, topic, lambda raw, t=topic: self._on(t, raw), qos, raw=True)
+            node.create_subscription(Float64MultiArray, topic, self._callback(topic), recorder_qos(), raw=True)
         self._clock = node.get_clock()
 
-    def _on(self, topic: str, raw: bytes) -> None:
-        self.records.append((topic, self._clock.now().nanoseconds, bytes(raw)))
+    def _callback(self, topic: str) -> Callable[[bytes], None]:
+        def on_message(raw: bytes) -> None:
+            self.records.append((topic, self._clock.now().nanoseconds, bytes(raw)))
+
+        return on_message
 
     def save(self, path: Path, latched: set[str]) -> int:
         """Write what was received to a bag; return the number of messages."""
@@ -49,24 +51,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--count", type=int, default=0, help="stop after this many messages (0: no limit)")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: no limit)")
     args = ap.parse_args(args_ros[1:])
-    rclpy.init(args=argv)
-    node = rclpy.create_node("bag_recorder")
-    recorder = Recorder(node, args.topics)
-    start = time.monotonic()
-    try:
-        while rclpy.ok():
-            rclpy.spin_once(node, timeout_sec=0.1)
-            if args.count and len(recorder.records) >= args.count:
-                break
-            if args.duration and time.monotonic() - start >= args.duration:
-                break
-    except KeyboardInterrupt:
-        pass
-    finally:
-        n = recorder.save(args.out, latched={"global_map"})
-        node.get_logger().info(f"recorded {n} messages to {args.out}")
-        node.destroy_node()
-        rclpy.try_shutdown()
+    with node_session("bag_recorder", argv) as node:
+        recorder = Recorder(node, args.topics)
+        try:
+            spin_until(
+                node,
+                lambda: not rclpy.ok() or 0 < args.count <= len(recorder.records),
+                args.duration if args.duration > 0 else math.inf,
+                period_s=0.1,
+            )
+        except KeyboardInterrupt:
+            pass
+        finally:
+            n = recorder.save(args.out, latched={"global_map"})
+            node.get_logger().info(f"recorded {n} messages to {args.out}")
     return 0
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError, MessageError
-from linear_slam_ros.joining.pairwise import join_divide_and_conquer
-from linear_slam_ros.pose_graph.chunks import PoseGraphChunk
+from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
+from linear_slam_ros.pose_graph.graph import PoseGraph
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
@@ -28,10 +28,11 @@ def _assert_same(a, b):
     assert (a.dim, a.frame_id, a.end_id) == (b.dim, b.frame_id, b.end_id)
 
 
-def _chunk(dim=2, seq=4):
+def _chunk(dim=2):
     p = 3 if dim == 2 else 6
     info = np.stack([np.eye(p) * (k + 1) for k in range(3)])
-    return PoseGraphChunk(dim, seq, np.array([3, 3, 3]), np.array([4, 9, 4]), np.arange(3 * p, dtype=float).reshape(3, p) / 7, info)
+    measurements = np.arange(3 * p, dtype=float).reshape(3, p) / 7
+    return PoseGraph.from_edges(np.array([3, 3, 3]), np.array([4, 9, 4]), measurements, info, dim=dim)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -70,10 +71,13 @@ def test_rclpy_message_carries_labels_and_cdr_crosses_libraries(rng):
 @pytest.mark.parametrize("dim", [2, 3])
 def test_chunk_round_trip_is_bit_exact(dim):
     chunk = _chunk(dim)
-    for back in (decode_chunk(*parts(to_msg(encode_chunk(chunk, Stamp(5, 6))))), decode_chunk(*bag_parts(deserialize(serialize(encode_chunk(chunk)))))):
-        for name in ("from_ids", "to_ids", "measurements", "information"):
-            assert getattr(back.chunk, name).tobytes() == getattr(chunk, name).tobytes()
-        assert back.chunk.seq == 4 and back.chunk.dim == dim
+    rclpy_back = decode_chunk(*parts(to_msg(encode_chunk(chunk, 4, Stamp(5, 6)))))
+    bag_back = decode_chunk(*bag_parts(deserialize(serialize(encode_chunk(chunk, 4)))))
+    for back, stamp in ((rclpy_back, Stamp(5, 6)), (bag_back, Stamp())):
+        for name in ("from_ids", "to_ids", "measurements", "information", "pose_ids"):
+            assert getattr(back.graph, name).tobytes() == getattr(chunk, name).tobytes()
+        assert back.seq == 4 and back.graph.dim == dim and back.stamp == stamp
+        assert back.graph.name == "pose-graph chunk 4"
 
 
 def _enc(rng):
@@ -140,7 +144,7 @@ def test_map_message_information_errors():
 
 
 def test_chunk_message_errors():
-    enc = encode_chunk(_chunk())
+    enc = encode_chunk(_chunk(), 4)
     header = enc.data[: enc.sizes[0]]
     with pytest.raises(MessageError, match="map_kind must be 2 for a pose-graph chunk, got 0"):
         decode_chunk(*_mutate(enc, "header", np.r_[header[:2], 0, header[3:]]))
@@ -148,13 +152,17 @@ def test_chunk_message_errors():
         decode_chunk(*_mutate(enc, "edge_to", [1.0, 2.0]))
     with pytest.raises(GraphError, match="edge 0 connects pose 3 to itself"):
         decode_chunk(*_mutate(enc, "edge_to", [3.0, 4.0, 5.0]))
+    with pytest.raises(GraphError, match="^pose-graph chunk 4: information of edge 1 \\(3->9\\) is not positive definite$"):
+        decode_chunk(*_mutate(enc, "information", np.r_[enc.data[-27:-18], -enc.data[-18:-9], enc.data[-9:]]))
 
 
 def _feature_map(dim, rng):
-    from linear_slam_ros.feature_only import maps as fm
+    from linear_slam_ros.feature_only.conversion import to_feature_only
+    from linear_slam_ros.feature_only.joining import join_features_sequential
+    from linear_slam_ros.feature_only.precondition import precondition
 
     world = make_world(dim, 12, 20, rng)
-    return fm.join_features_sequential([fm.to_feature_only(g) for g in fm.precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))])
+    return join_features_sequential([to_feature_only(g) for g in precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))])
 
 
 @pytest.mark.parametrize("dim", [2, 3])

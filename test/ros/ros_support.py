@@ -3,31 +3,28 @@
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import pytest
+
+from linear_slam_ros.ros.process import loopback_env, stop_process  # imports no rclpy
 
 REPO = Path(__file__).resolve().parents[2]
 INSTALL_SETUP = REPO / "install" / "setup.bash"
 
-# DDS stays on loopback, in a domain of this test run (never the default 0).
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ["ROS_DOMAIN_ID"] = str(20 + os.getpid() % 70)
+# DDS stays on loopback, in a domain of this test run (never the default 0) unless ROS_DOMAIN_ID
+# names one already.
+os.environ.update(loopback_env(20 + os.getpid() % 70))
 
-import rclpy  # noqa: E402  (after the environment is set)
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from rclpy.serialization import deserialize_message  # noqa: E402  (after the environment is set)
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
+from linear_slam_ros.ros.spin import LatestMessage  # noqa: E402
 from msg_adapters import decode_map  # noqa: E402
 from msg_adapters.ros import parts  # noqa: E402
-
-LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def sourced(command: str) -> list[str]:
@@ -48,39 +45,29 @@ class JoinerProcess:
             f"--params-file {REPO}/config/joiner.yaml -r __ns:=/{namespace} {args}"
         )
         self.namespace = namespace
-        self.process = subprocess.Popen(sourced(cmd), cwd=REPO, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        self.process = subprocess.Popen(
+            sourced(cmd), cwd=REPO, env=dict(os.environ), stdout=subprocess.PIPE, stderr=subprocess.STDOUT
+        )
 
     def topic(self, name: str) -> str:
         return f"/{self.namespace}/{name}"
 
     def stop(self, timeout_s: float = 15.0) -> tuple[int, str]:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
+        """Stop the joiner (Ctrl-C, then kill); return its exit code and output."""
+        code = stop_process(self.process, timeout_s)
         out = self.process.stdout.read().decode(errors="replace") if self.process.stdout else ""
-        return int(self.process.returncode), out
+        return code, out
 
 
 def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeout_s: float, joiner: JoinerProcess | None = None,
                         decode: Callable[..., object] = decode_map):
     """Spin until a received global map (decoded by ``decode``) satisfies ``done``; return (message, receive time)."""
-    latest: dict[str, object] = {}
-    sub = node.create_subscription(Float64MultiArray, topic, lambda m: latest.update(msg=m, t=time.monotonic()), LATCHED)
-    deadline = time.monotonic() + timeout_s
-    try:
-        while time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
-            if "msg" in latest:
-                decoded = decode(*parts(latest["msg"]))
-                if done(decoded):
-                    return decoded, latest["t"]
-            if joiner is not None and joiner.process.poll() is not None:
-                code, out = joiner.stop()
-                pytest.fail(f"joiner exited with {code}:\n{out[-3000:]}")
-        pytest.fail(f"no satisfying global_map on {topic} within {timeout_s} s (last: {latest.get('msg') is not None})")
-    finally:
-        node.destroy_subscription(sub)
+    with LatestMessage(node, topic, lambda raw: decode(*parts(deserialize_message(raw, Float64MultiArray)))) as latest:
+        try:
+            satisfied = latest.wait(done, timeout_s, joiner.process if joiner is not None else None)
+        except ChildProcessError:
+            code, out = joiner.stop()
+            pytest.fail(f"joiner exited with {code}:\n{out[-3000:]}")
+        if not satisfied:
+            pytest.fail(f"no satisfying global_map on {topic} within {timeout_s} s (last: {latest.raw is not None})")
+        return latest.value, latest.received_at

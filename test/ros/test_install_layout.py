@@ -5,11 +5,9 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
 from pathlib import Path
 
-import rclpy
-
+from linear_slam_ros.ros.spin import spin_until
 from ros_support import REPO, sourced
 
 
@@ -28,13 +26,8 @@ def test_ament_index_finds_the_package_and_its_executable(node, start_joiner):
     assert prefix.resolve().is_relative_to((REPO / "install").resolve())
 
     joiner = start_joiner()
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.1)
-        if ("joiner", f"/{joiner.namespace}") in node.get_node_names_and_namespaces():
-            break
-    else:
-        raise AssertionError(f"node joiner did not appear: {node.get_node_names_and_namespaces()}")
+    appeared = spin_until(node, lambda: ("joiner", f"/{joiner.namespace}") in node.get_node_names_and_namespaces(), 30.0, 0.1)
+    assert appeared, f"node joiner did not appear: {node.get_node_names_and_namespaces()}"
     code, output = joiner.stop()
     assert code == 0, output  # Ctrl-C is a clean exit
     assert "joiner ready: mode=sequential" in output

@@ -13,18 +13,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
-from ros_support import LATCHED, REPO, wait_for_global_map
 from linear_slam_ros.evaluation.objective import chi2
-from linear_slam_ros.ros.bag_from_dataset import make_bag
-from linear_slam_ros.ros.bagio import read_messages
-from linear_slam_ros.ros.player import play
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.ros.bag_from_dataset import make_bag
+from linear_slam_ros.ros.bagio import BagRecord, read_messages
+from linear_slam_ros.ros.player import play
 from msg_adapters import decode_map, encode_map
 from msg_adapters.ros import to_msg
+from ros_support import REPO, wait_for_global_map
 
 DATASETS = REPO.parent / "shared" / "datasets"
 CASES = [
@@ -43,14 +44,8 @@ def _bag(name: str) -> Path:
 
 
 def _publish_all(node, topic, messages):
-    pub = node.create_publisher(Float64MultiArray, topic, LATCHED.__class__(depth=1, history=2, reliability=1, durability=2))
-    deadline = time.monotonic() + 30
-    while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-        rclpy.spin_once(node, timeout_sec=0.05)
-    for m in messages:
-        pub.publish(m)
-    pub.wait_for_all_acked(rclpy.duration.Duration(seconds=30))
-    return pub
+    """Publish ``messages`` on ``topic`` as the bag player does (reliable, keep all), at once."""
+    play(node, [BagRecord(topic, 0, serialize_message(m), False) for m in messages], rate_factor=0.0, wait_s=30.0)
 
 
 @pytest.mark.parametrize("name, mode", CASES)
@@ -90,7 +85,9 @@ def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchma
 
 def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benchmark, tmp_path):
     """map_type feature-only: VicPark200's pose-feature bag becomes the feature-only global map."""
-    from linear_slam_ros.feature_only import maps as fm
+    from linear_slam_ros.feature_only.conversion import to_feature_only
+    from linear_slam_ros.feature_only.joining import join_features_sequential
+    from linear_slam_ros.feature_only.precondition import precondition
     from msg_adapters import decode_feature_map
 
     name = "VicPark_200_local_maps"
@@ -117,7 +114,7 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     # the node's BLAS thread count: the feature-only chain carries rounding differences of the
     # BLAS schedule to ~1e-6 m (VicPark200), so the bit-level comparison uses the same one
     with threadpool_limits(limits=blas_threads_for("sequential")):
-        offline = fm.join_features_sequential([fm.to_feature_only(g) for g in fm.precondition(maps)])
+        offline = join_features_sequential([to_feature_only(g) for g in precondition(maps)])
     got = final.feature_map
     assert got.frame_ids == offline.frame_ids
     np.testing.assert_array_equal(got.ids, offline.ids)
@@ -199,10 +196,10 @@ def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark
     """Raw relative-pose chunks (5 local maps' edges each: chains with loop closures) -> LAGO ->
     joining, with no iteration and no initial guess anywhere."""
     from linear_slam_ros.core.frames import change_frame
-    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps
     from linear_slam_ros.evaluation.nonlinear import gauss_newton
     from linear_slam_ros.evaluation.objective import MapObjective
     from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps
     from linear_slam_ros.ros.bag_from_dataset import chunk_of
 
     maps = list(read_benchmark(name).maps)

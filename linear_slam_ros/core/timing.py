@@ -1,0 +1,37 @@
+"""Timing figures shared by the joiner, the CLI and the benchmark: latency percentiles, peak RSS."""
+
+from __future__ import annotations
+
+import resource
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Latency(NamedTuple):
+    """p50, p99 and maximum of a set of durations, in milliseconds (0 when there is none)."""
+
+    p50_ms: float
+    p99_ms: float
+    max_ms: float
+
+
+def latency(seconds: Sequence[float]) -> Latency:
+    """Return the p50, p99 and maximum of durations given in seconds, in milliseconds."""
+    ms = np.asarray(seconds, dtype=np.float64) * 1e3
+    if ms.size == 0:
+        return Latency(0.0, 0.0, 0.0)
+    p50, p99 = np.percentile(ms, [50, 99])
+    return Latency(float(p50), float(p99), float(ms.max()))
+
+
+def latency_summary(seconds: Sequence[float]) -> dict[str, float]:
+    """Return the report keys ``per_submap_ms_p50/p99/max`` of per-step durations (seconds)."""
+    lat = latency(seconds)
+    return {"per_submap_ms_p50": lat.p50_ms, "per_submap_ms_p99": lat.p99_ms, "per_submap_ms_max": lat.max_ms}
+
+
+def peak_rss_mb() -> float:
+    """Return this process's peak resident set size in MiB (Linux ``ru_maxrss`` is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -1,0 +1,161 @@
+"""The joiner's typed configuration: one frozen value, from ROS parameters or command-line options.
+
+Every field of :class:`JoinerConfig` is a node parameter; its metadata (:class:`ParamSpec`)
+gives the description, whether it is read-only, its numeric range or its allowed values. The
+node declares its parameters from :func:`parameter_specs` and builds the config with
+:meth:`JoinerConfig.from_mapping`, which names the parameter, the value and the allowed values
+of anything invalid.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.joiner.registry import methods
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+
+
+class OutputFrame(str, enum.Enum):
+    """Frame of the published global map."""
+
+    END_POSE = "end_pose"
+    """Robocentric: the newest end pose."""
+    FIRST_POSE = "first_pose"
+    """The frame pose of the first joined submap."""
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """How a config field is exposed as a ROS parameter.
+
+    Attributes:
+        description: one line for ``ros2 param describe`` and the README table.
+        read_only: fixed at start-up.
+        bounds: inclusive numeric range, or ``None``.
+    """
+
+    description: str
+    read_only: bool = False
+    bounds: tuple[float, float] | None = None
+
+
+def _param(default: Any, description: str, read_only: bool = False, bounds: tuple[float, float] | None = None) -> Any:
+    return dataclasses.field(default=default, metadata={"param": ParamSpec(description, read_only, bounds)})
+
+
+@dataclass(frozen=True)
+class JoinerConfig:
+    """Everything the joiner is configured with (units in the descriptions)."""
+
+    mode: JoinMethod = _param(
+        JoinMethod.SEQUENTIAL,
+        "joining method: 'sequential' (exact, robocentric end-pose frame) or 'online-dc' "
+        "(online divide and conquer, for long streams)", read_only=True,
+    )
+    map_type: MapType = _param(
+        MapType.AS_IS,
+        "'as-is' joins the submaps' variables; 'feature-only' marginalises the poses of "
+        "pose-feature submaps and joins feature-only maps in feature-defined frames (D-SLAM)", read_only=True,
+    )
+    output_frame: OutputFrame = _param(
+        OutputFrame.END_POSE,
+        "frame of the global_map message: 'end_pose' (robocentric, newest end pose) or 'first_pose'",
+    )
+    publish_rate: float = _param(2.0, "maximum rate of the output topics, Hz", bounds=(0.05, 100.0))
+    map_frame: str = _param("map", "frame_id of the viewing topics (the first pose's frame)")
+    queue_depth: int = _param(
+        0, "subscription history depth; 0 keeps all (reliable, no submap dropped)", read_only=True, bounds=(0, 1_000_000),
+    )
+    reorder_window: int = _param(100, "early submaps held while waiting for a missing sequence number", bounds=(1, 1_000_000))
+    ellipse_max_state: int = _param(
+        1500, "largest global state (scalars) for which feature covariance ellipses are drawn", bounds=(0, 1_000_000),
+    )
+    summary_period: float = _param(5.0, "seconds between info-level summary lines and /diagnostics", bounds=(0.1, 3600.0))
+    save_directory: str = _param("saved_map", "folder where ~/save_map writes poses.txt, features.txt and a bag")
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], online: bool = True) -> JoinerConfig:
+        """Build a config from ``{name: value}`` (missing names keep their defaults).
+
+        Args:
+            values: parameter values (enum fields as their string values).
+            online: allow only strategies that join as submaps arrive (the node); the CLI
+                passes ``False`` to allow batch ones too.
+
+        Raises:
+            ConfigError: an unknown name, a value of the wrong type or outside its range, an
+                enum value not allowed, or a (mode, map_type) pair with no strategy; the message
+                names the parameter, the value and the allowed values.
+        """
+        unknown = sorted(set(values) - {f.name for f in dataclasses.fields(cls)})
+        if unknown:
+            raise ConfigError(f"unknown parameter {unknown[0]!r}")
+        kwargs: dict[str, Any] = {}
+        for f in dataclasses.fields(cls):
+            if f.name in values:
+                kwargs[f.name] = _convert(f, values[f.name])
+        config = cls(**kwargs)
+        allowed = methods(config.map_type, online_only=online)
+        if config.mode not in allowed:
+            raise ConfigError(
+                f"parameter mode={config.mode.value!r} is not allowed with map_type={config.map_type.value!r}: "
+                f"allowed values are {[m.value for m in allowed]}"
+            )
+        return config
+
+
+def _convert(f: dataclasses.Field[Any], value: Any) -> Any:
+    """Return ``value`` as field ``f``'s type, checked against its range or allowed values."""
+    spec: ParamSpec = f.metadata["param"]
+    default = f.default
+    if isinstance(default, enum.Enum):
+        enum_type = type(default)
+        try:
+            return enum_type(value)
+        except ValueError:
+            allowed = [e.value for e in enum_type]
+            raise ConfigError(f"parameter {f.name}={value!r} is not valid: allowed values are {allowed}") from None
+    if isinstance(default, bool) or not isinstance(value, type(default)) and not (
+        isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool)
+    ):
+        raise ConfigError(f"parameter {f.name}={value!r} must be of type {type(default).__name__}")
+    if isinstance(default, float):
+        value = float(value)
+    if spec.bounds is not None and not spec.bounds[0] <= value <= spec.bounds[1]:
+        raise ConfigError(f"parameter {f.name}={value!r} is outside its range [{spec.bounds[0]:g}, {spec.bounds[1]:g}]")
+    return value
+
+
+@dataclass(frozen=True)
+class ParameterDeclaration:
+    """A node parameter as the node declares it.
+
+    Attributes:
+        name: parameter name.
+        default: default value, as a ROS parameter value (enums as strings).
+        spec: description, read-only flag and range.
+        choices: allowed string values of an enum parameter (empty otherwise).
+    """
+
+    name: str
+    default: bool | int | float | str
+    spec: ParamSpec
+    choices: tuple[str, ...] = ()
+
+
+def parameter_declarations() -> tuple[ParameterDeclaration, ...]:
+    """Return the node's parameters, in the order of :class:`JoinerConfig`'s fields."""
+    out = []
+    for f in dataclasses.fields(JoinerConfig):
+        default = f.default
+        choices: tuple[str, ...] = ()
+        if isinstance(default, enum.Enum):
+            choices = tuple(str(e.value) for e in type(default))
+            default = default.value
+        out.append(ParameterDeclaration(f.name, default, f.metadata["param"], choices))
+    return tuple(out)

@@ -1,0 +1,1 @@
+"""The joining strategies, one module per family; :mod:`linear_slam_ros.joiner.registry` lists them."""

@@ -1,0 +1,79 @@
+"""Divide and conquer of pose maps (Sec. 5.2): online (binary-counter stack) and batch."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.joiner.strategy import PER_JOIN, FoldStrategy, JoinMethod, MapType, Progress
+from linear_slam_ros.joining.divide_conquer import (
+    OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step,
+)
+
+
+class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
+    """Each submap pushed on a binary-counter stack; the stack is merged for output."""
+
+    method: ClassVar[JoinMethod] = JoinMethod.ONLINE_DC
+    map_type: ClassVar[MapType] = MapType.AS_IS
+    online: ClassVar[bool] = True
+    result_type: ClassVar[type] = LocalMap
+    blas_threads: ClassVar[int | None] = None
+    finish_in_last_step: ClassVar[bool] = True
+
+    def empty(self) -> OnlineDCState:
+        """Return the empty stack."""
+        return OnlineDCState()
+
+    def step(self, state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
+        """Push one submap (see :func:`~linear_slam_ros.joining.divide_conquer.online_dc_step`)."""
+        return online_dc_step(state, submap)
+
+    def result(self, state: OnlineDCState) -> LocalMap | None:
+        """Return the merged stack in the newest end pose's frame (``None`` when empty)."""
+        return online_dc_result(state) if state.stack else None
+
+    def express(self, result: LocalMap, pose_id: int) -> LocalMap:
+        """Return the map in the frame of pose ``pose_id``."""
+        return change_frame(result, pose_id)
+
+
+class BatchDC(FoldStrategy[tuple[LocalMap, ...], LocalMap]):
+    """The submaps collected, then joined by divide and conquer when the result is asked for."""
+
+    method: ClassVar[JoinMethod] = JoinMethod.DC
+    map_type: ClassVar[MapType] = MapType.AS_IS
+    online: ClassVar[bool] = False
+    result_type: ClassVar[type] = LocalMap
+    blas_threads: ClassVar[int | None] = None
+    run_step: ClassVar[str] = PER_JOIN
+
+    def empty(self) -> tuple[LocalMap, ...]:
+        """Return no submaps."""
+        return ()
+
+    def step(self, state: tuple[LocalMap, ...], submap: LocalMap) -> tuple[LocalMap, ...]:
+        """Collect one submap."""
+        return (*state, submap)
+
+    def result(self, state: tuple[LocalMap, ...]) -> LocalMap | None:
+        """Join the collected submaps (``None`` when there is none)."""
+        return join_divide_and_conquer(state) if state else None
+
+    def express(self, result: LocalMap, pose_id: int) -> LocalMap:
+        """Return the map in the frame of pose ``pose_id``."""
+        return change_frame(result, pose_id)
+
+    def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[LocalMap, list[float]]:
+        """Join by divide and conquer, timing each pairwise join."""
+        steps: list[float] = []
+
+        def on_join(seconds: float) -> None:
+            steps.append(seconds)
+            if progress is not None:
+                progress(1)
+
+        return join_divide_and_conquer(maps, on_join), steps
+

@@ -1,0 +1,152 @@
+"""The joining-strategy seam: one small protocol for "a way of joining a stream of submaps".
+
+A strategy is keyed by (:class:`JoinMethod`, :class:`MapType`) in
+:mod:`linear_slam_ros.joiner.registry`. Its state is one immutable value and :meth:`step` a pure
+function of (state, submap), so the joiner around it can keep, compare, save or restore states
+freely. Everything that drives joining (the node, the CLI, the benchmark) goes through a
+strategy; none of them dispatches on the method or the map type.
+
+Room for what comes next: a gate runs between the arrival of a submap and :meth:`step` (it
+reads the state and the submap, and either lets the step commit or rejects the submap); an
+exact snapshot walks the state value (frozen dataclasses of numpy arrays and maps) and restores
+it bit for bit.
+"""
+
+from __future__ import annotations
+
+import enum
+import time
+from collections.abc import Callable, Sequence
+from typing import ClassVar, Generic, Protocol, TypeVar
+
+from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.core.local_map import LocalMap
+
+
+class JoinMethod(str, enum.Enum):
+    """How submaps are joined (the CLI's ``--method``, the node's ``mode``)."""
+
+    SEQUENTIAL = "sequential"
+    """Exact sequential joining in the robocentric end-pose frame (Sec. 5.1)."""
+    DC = "dc"
+    """Batch divide and conquer (Sec. 5.2)."""
+    ONLINE_DC = "online-dc"
+    """Divide and conquer as submaps arrive: a binary-counter stack, merged for output."""
+
+
+class MapType(str, enum.Enum):
+    """What the joiner keeps of the submaps (the node's ``map_type``)."""
+
+    AS_IS = "as-is"
+    """Join the submaps' variables as they are (pose-feature, pose-only)."""
+    FEATURE_ONLY = "feature-only"
+    """Marginalise the poses and join feature-only maps in feature-defined frames (Sec. 7)."""
+
+
+StateT = TypeVar("StateT")
+ResultT = TypeVar("ResultT")
+ResultT_co = TypeVar("ResultT_co", covariant=True)
+PER_SUBMAP = "per submap"
+PER_JOIN = "per pairwise join"
+Progress = Callable[[int], None]
+"""Called with the number of steps (submaps or pairwise joins) just completed."""
+
+
+class JoinStrategy(Protocol[StateT, ResultT_co]):
+    """A way of joining a stream of submaps.
+
+    Attributes:
+        method: the registry key's method.
+        map_type: the registry key's map type.
+        online: whether :meth:`step` does the joining as submaps arrive (the node accepts only
+            online strategies; a batch strategy's step only collects submaps).
+        result_type: the type of the joined map (``LocalMap`` or ``FeatureMap``).
+        blas_threads: BLAS threads measured best for this strategy (``None``: leave as is).
+        run_step: what one timed step of :meth:`run` is: ``"per submap"`` or ``"per pairwise join"``.
+    """
+
+    method: ClassVar[JoinMethod]
+    map_type: ClassVar[MapType]
+    online: ClassVar[bool]
+    result_type: ClassVar[type]
+    blas_threads: ClassVar[int | None]
+    run_step: ClassVar[str]
+
+    def empty(self) -> StateT:
+        """Return the state before any submap."""
+        ...
+
+    def step(self, state: StateT, submap: LocalMap) -> StateT:
+        """Return the state after ``submap`` (pure: ``state`` is not modified).
+
+        Raises:
+            LinearSlamError: the submap cannot be joined; the caller keeps ``state``.
+        """
+        ...
+
+    def result(self, state: StateT) -> ResultT_co | None:
+        """Return the joined map (``None`` while there is none).
+
+        Pose maps are in the robocentric frame of the newest end pose; feature-only maps in the
+        frame of their longest-baseline features.
+        """
+        ...
+
+    def express(self, result: ResultT_co, pose_id: int) -> ResultT_co:  # type: ignore[misc]
+        """Return ``result`` in the frame of pose ``pose_id`` (unchanged for maps without pose frames)."""
+        ...
+
+    def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT_co, list[float]]:
+        """Join a whole sequence, timing each step.
+
+        Returns:
+            The joined map and the wall time of each step in seconds (per submap, or per
+            pairwise join for batch strategies).
+
+        Raises:
+            InvalidMapError: no map results from ``maps``.
+            LinearSlamError: a submap cannot be joined.
+        """
+        ...
+
+
+class FoldStrategy(Generic[StateT, ResultT]):
+    """Base of streaming strategies: :meth:`run` folds :meth:`step` over the maps.
+
+    Subclasses define ``empty``, ``step``, ``result``, ``express`` and the class attributes of
+    :class:`JoinStrategy`.
+
+    Attributes:
+        finish_in_last_step: add the time of the final :meth:`result` to the last step's (the
+            online D&C stack's final merge is part of joining the last submap).
+    """
+
+    finish_in_last_step: ClassVar[bool] = False
+    run_step: ClassVar[str] = PER_SUBMAP
+
+    def empty(self) -> StateT:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def step(self, state: StateT, submap: LocalMap) -> StateT:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def result(self, state: StateT) -> ResultT | None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:
+        """Fold :meth:`step` over ``maps``, one timed step per submap, then take :meth:`result`."""
+        steps: list[float] = []
+        state = self.empty()
+        for m in maps:
+            t0 = time.perf_counter()
+            state = self.step(state, m)
+            steps.append(time.perf_counter() - t0)
+            if progress is not None:
+                progress(1)
+        t0 = time.perf_counter()
+        result = self.result(state)
+        if self.finish_in_last_step and steps:
+            steps[-1] += time.perf_counter() - t0
+        if result is None:
+            raise InvalidMapError(f"no joined map: the {len(maps)} local maps gave none")
+        return result, steps

@@ -1,0 +1,171 @@
+"""The pose-graph value: relative-pose edges between robot poses, with their information.
+
+A pose graph is a set of edges ``(from, to, z, I)``: pose ``to`` measured from pose ``from`` as
+``z`` (``x y phi`` in 2D, ``x y z alpha beta gamma`` in 3D: the datasets' convention; metres,
+radians; in the frame of pose ``from``) with ``p x p`` information ``I`` (``p`` = 3 in 2D, 6
+in 3D). The same type serves a whole graph (a g2o file, a dataset's edges: the input of LAGO)
+and one submap's chunk of edges (a ``pose_graph`` message); its :attr:`PoseGraph.name` says
+which in every error. Transport metadata (a message's ``seq`` and stamp) is not part of the
+graph: the message layer carries it beside the graph.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg
+
+from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.core.geometry import pose_size
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+DEFAULT_NAME = "pose graph"
+"""Name of a graph built without one (error messages start with it)."""
+
+_SYMMETRY_RTOL = 1e-9
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGraph:
+    """Relative-pose edges between robot poses; validated on construction.
+
+    Build one with :meth:`from_edges` (array-likes, pose ids derived from the edges); the
+    constructor takes the arrays as they are and checks them.
+
+    Attributes:
+        dim: 2 or 3.
+        from_ids: ``(m,)`` pose ids (``>= 0``) the measurements are taken from.
+        to_ids: ``(m,)`` pose ids measured; edge ``e`` measures pose ``to_ids[e]`` from pose
+            ``from_ids[e]`` and never connects a pose to itself.
+        measurements: ``(m, p)`` pose ``to`` in the frame of pose ``from``: ``x y phi`` (2D) or
+            ``x y z alpha beta gamma`` (3D); metres, radians.
+        information: ``(m, p, p)`` symmetric positive-definite information of each
+            measurement, in the units of ``measurements`` (1/m², 1/(m rad), 1/rad²).
+        pose_ids: ``(n,)`` every pose of the graph, sorted and unique: the poses of the edges,
+            plus any vertex without edges (a g2o ``VERTEX_SE2`` no edge names).
+        name: what the graph is, for messages (e.g. ``"pose-graph chunk 4"``).
+
+    Raises:
+        GraphError: any of the above does not hold (the message starts with ``name`` and
+            names the edge at fault).
+    """
+
+    dim: int
+    from_ids: IntArray
+    to_ids: IntArray
+    measurements: FloatArray
+    information: FloatArray
+    pose_ids: IntArray
+    name: str = DEFAULT_NAME
+
+    def __post_init__(self) -> None:
+        who = self.name
+        if self.dim not in (2, 3):
+            raise GraphError(f"{who}: dimension must be 2 or 3, got {self.dim}")
+        p = pose_size(self.dim)
+        k = self.from_ids.shape[0] if np.ndim(self.from_ids) == 1 else -1
+        if k == 0 and np.shape(self.to_ids) == (0,):
+            raise GraphError(f"{who} has no edges")
+        if k < 1 or np.shape(self.to_ids) != (k,):
+            raise GraphError(f"{who}: needs at least one edge and equal numbers of from and to ids")
+        if np.shape(self.measurements) != (k, p) or np.shape(self.information) != (k, p, p):
+            raise GraphError(
+                f"{who}: {k} edges need measurements ({k}, {p}) and information ({k}, {p}, {p}), got "
+                f"{np.shape(self.measurements)} and {np.shape(self.information)}"
+            )
+        if np.any(self.from_ids < 0) or np.any(self.to_ids < 0) or np.any(self.pose_ids < 0):
+            raise GraphError(f"{who}: pose ids must be >= 0")
+        if np.ndim(self.pose_ids) != 1 or np.any(np.diff(self.pose_ids) <= 0):
+            raise GraphError(f"{who}: pose_ids must be sorted and unique")
+        self._check_known_poses()
+        loops = np.flatnonzero(self.from_ids == self.to_ids)
+        if loops.size:
+            raise GraphError(f"{who}: edge {int(loops[0])} connects pose {int(self.from_ids[loops[0]])} to itself")
+        if not (np.all(np.isfinite(self.measurements)) and np.all(np.isfinite(self.information))):
+            raise GraphError(f"{who}: non-finite measurement or information")
+        self._check_information()
+
+    def _check_known_poses(self) -> None:
+        """Raise :class:`GraphError` when an edge names a pose missing from ``pose_ids``."""
+        f, t = self.from_ids, self.to_ids
+        unknown = np.setdiff1d(np.union1d(f, t), self.pose_ids)
+        if unknown.size:
+            e = int(np.flatnonzero(np.isin(f, unknown) | np.isin(t, unknown))[0])
+            raise GraphError(
+                f"{self.name}: edge {e} ({int(f[e])} -> {int(t[e])}) names unknown pose {int(unknown[0])}"
+                f"{f' (and {unknown.size - 1} more)' if unknown.size > 1 else ''}"
+            )
+
+    def _check_information(self) -> None:
+        """Raise :class:`GraphError` at the first edge whose information is not symmetric
+        (relative tolerance 1e-9) or not positive definite (no Cholesky factor)."""
+        info = self.information
+        transposed = np.swapaxes(info, -1, -2)
+        # np.allclose(block, block.T, rtol, atol=0) of every block at once
+        symmetric = np.all(np.abs(info - transposed) <= _SYMMETRY_RTOL * np.abs(transposed), axis=(1, 2))
+        for e in range(self.n_edges):
+            if not symmetric[e]:
+                raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}) is not symmetric")
+            try:
+                scipy.linalg.cholesky(info[e])
+            except np.linalg.LinAlgError:
+                raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}) is not positive definite") from None
+
+    def _edge(self, e: int) -> str:
+        return f"{int(self.from_ids[e])}->{int(self.to_ids[e])}"
+
+    @classmethod
+    def from_edges(
+        cls,
+        from_ids: npt.ArrayLike,
+        to_ids: npt.ArrayLike,
+        measurements: npt.ArrayLike,
+        information: npt.ArrayLike,
+        pose_ids: npt.ArrayLike | None = None,
+        *,
+        dim: int | None = None,
+        name: str = DEFAULT_NAME,
+    ) -> PoseGraph:
+        """Build a graph from array-likes (ids as int64, values as float64).
+
+        Args:
+            from_ids: ``(m,)`` pose ids the measurements are taken from.
+            to_ids: ``(m,)`` pose ids measured.
+            measurements: ``(m, p)`` pose ``to`` seen from pose ``from`` (m, rad).
+            information: ``(m, p, p)`` information of each measurement.
+            pose_ids: every pose of the graph, in any order (duplicates dropped); each edge
+                must name two of them. Default: the poses the edges name.
+            dim: 2 or 3. Default: 3 when ``measurements`` has 6 columns, else 2.
+            name: what the graph is, for messages.
+
+        Raises:
+            GraphError: shapes do not match, an edge names an unknown pose, or another
+                invariant of :class:`PoseGraph` fails.
+        """
+        f = np.asarray(from_ids, dtype=np.int64)
+        t = np.asarray(to_ids, dtype=np.int64)
+        z = np.asarray(measurements, dtype=np.float64)
+        info = np.asarray(information, dtype=np.float64)
+        if dim is None:
+            dim = 3 if z.ndim == 2 and z.shape[1] == pose_size(3) else 2
+        poses = np.union1d(f, t) if pose_ids is None else np.unique(np.asarray(pose_ids, dtype=np.int64))
+        return cls(dim, f, t, z, info, poses, name)
+
+    @property
+    def n_edges(self) -> int:
+        """Number of edges."""
+        return int(self.from_ids.shape[0])
+
+    @property
+    def n_poses(self) -> int:
+        """Number of poses (vertices), edges' and isolated ones."""
+        return int(self.pose_ids.size)
+
+    @property
+    def is_star(self) -> bool:
+        """Whether every edge leaves the same pose (then the graph is a pose-only local map)."""
+        return bool(np.all(self.from_ids == self.from_ids[0]))

@@ -1,0 +1,67 @@
+"""The pose-graph type: one validator for whole graphs and message chunks, constructors, properties."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.pose_graph.graph import PoseGraph
+
+
+def _chunk(**over):
+    kw = dict(
+        from_ids=np.array([3, 3]),
+        to_ids=np.array([4, 7]),
+        measurements=np.array([[1.0, 0, 0.1], [2.0, 1, -0.2]]),
+        information=np.stack([np.eye(3), 2 * np.eye(3)]),
+        dim=2,
+        name="pose-graph chunk 1",
+    )
+    kw.update(over)
+    return PoseGraph.from_edges(**kw)
+
+
+@pytest.mark.parametrize(
+    "over, match",
+    [
+        (dict(dim=4), "dimension must be 2 or 3, got 4"),
+        (dict(to_ids=np.array([4])), "needs at least one edge and equal numbers"),
+        (dict(measurements=np.zeros((2, 6))), "2 edges need measurements \\(2, 3\\)"),
+        (dict(from_ids=np.array([-1, 3])), "pose ids must be >= 0"),
+        (dict(to_ids=np.array([3, 7])), "edge 0 connects pose 3 to itself"),
+        (dict(measurements=np.array([[np.inf, 0, 0], [0, 0, 0]])), "non-finite measurement or information"),
+        (dict(information=np.stack([np.eye(3), np.triu(np.ones((3, 3)))])), "information of edge 1 \\(3->7\\) is not symmetric"),
+        (dict(information=np.stack([np.eye(3), -np.eye(3)])), "information of edge 1 \\(3->7\\) is not positive definite"),
+        (dict(pose_ids=[3, 4]), "edge 1 \\(3 -> 7\\) names unknown pose 7"),
+    ],
+)
+def test_chunk_validation(over, match):
+    with pytest.raises(GraphError, match=f"pose-graph chunk 1: {match}"):
+        _chunk(**over)
+
+
+def test_empty_graph_and_the_constructor_are_validated_too():
+    with pytest.raises(GraphError, match="^pose-graph chunk 1 has no edges$"):
+        _chunk(from_ids=[], to_ids=[], measurements=np.zeros((0, 3)), information=np.zeros((0, 3, 3)))
+    good = _chunk()
+    with pytest.raises(GraphError, match="^pose graph: pose_ids must be sorted and unique$"):
+        PoseGraph(2, good.from_ids, good.to_ids, good.measurements, good.information, np.array([7, 4, 3]))
+    with pytest.raises(GraphError, match=r"^pose graph: edge 0 \(3 -> 4\) names unknown pose 3 \(and 1 more\)$"):
+        PoseGraph(2, good.from_ids, good.to_ids, good.measurements, good.information, np.array([7]))
+
+
+def test_from_edges_types_dimension_and_poses():
+    g = _chunk(from_ids=[3, 4], to_ids=[4, 7], pose_ids=[9, 7, 3, 4, 3], dim=None)
+    assert (g.dim, g.name, g.n_edges, g.n_poses, g.is_star) == (2, "pose-graph chunk 1", 2, 4, False)
+    assert g.from_ids.dtype == g.to_ids.dtype == g.pose_ids.dtype == np.int64
+    np.testing.assert_array_equal(g.pose_ids, [3, 4, 7, 9])  # sorted, unique, vertex 9 without edges kept
+    g3 = PoseGraph.from_edges([0, 0], [1, 2], np.zeros((2, 6)), np.stack([np.eye(6)] * 2))
+    assert (g3.dim, g3.name, g3.is_star) == (3, "pose graph", True)
+    np.testing.assert_array_equal(g3.pose_ids, [0, 1, 2])
+
+
+def test_from_edges_keeps_float64_arrays_without_copying():
+    chunk = _chunk()
+    again = PoseGraph.from_edges(chunk.from_ids, chunk.to_ids, chunk.measurements, chunk.information)
+    assert again.measurements is chunk.measurements and again.information is chunk.information

@@ -12,6 +12,7 @@ from linear_slam_ros.core.errors import InvalidMapError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.joining.divide_conquer import OnlineDCState, online_dc_result, online_dc_step
 from linear_slam_ros.joining.pairwise import join_pair, to_end_frame
+from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 
 REPO = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("LINEAR_SLAM_DATASETS", REPO.parent / "shared" / "datasets"))
@@ -48,3 +49,13 @@ def join_online_dc(maps: Iterable[LocalMap]) -> LocalMap:
     for m in maps:
         state = online_dc_step(state, m)
     return online_dc_result(state)
+
+
+def join_sequential(maps: Iterable[LocalMap]) -> LocalMap:
+    """Join maps exactly and sequentially; return the global map in the last end pose's frame."""
+    state = SequentialState()
+    for m in maps:
+        state = sequential_step(state, m)
+    if state.global_map is None:
+        raise InvalidMapError("no local maps to join")
+    return state.global_map.to_local_map()

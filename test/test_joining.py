@@ -14,8 +14,7 @@ from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_map, exact_pose_graph_maps, make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step
 from linear_slam_ros.joining.pairwise import align_frames, join_in_shared_frame, join_pair
-from linear_slam_ros.joining.sequential import join_sequential
-from support import join_online_dc, join_sequential_information
+from support import join_online_dc, join_sequential, join_sequential_information
 
 JOINERS = {
     "sequential": join_sequential,

@@ -14,7 +14,7 @@ from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
 from linear_slam_ros.evaluation.objective import MapObjective, chi2
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
-from linear_slam_ros.joining.sequential import join_sequential
+from support import join_sequential
 
 
 @pytest.mark.parametrize("dim", [2, 3])

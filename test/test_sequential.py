@@ -7,8 +7,8 @@ import pytest
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
-from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, join_sequential, sequential_step
-from support import join_sequential_information
+from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, sequential_step
+from support import join_sequential, join_sequential_information
 
 
 @pytest.mark.parametrize("dim", [2, 3])

@@ -25,6 +25,9 @@ from linear_slam_ros.io.results import write_map, write_report, write_result
 from linear_slam_ros.joiner.config import JoinerConfig
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
+from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps
+from linear_slam_ros.pose_graph.g2o import read_g2o
+from linear_slam_ros.pose_graph.lago import lago
 
 logger = logging.getLogger("linear_slam_ros")
 

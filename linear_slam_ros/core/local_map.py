@@ -13,7 +13,8 @@ import dataclasses
 import functools
 import logging
 from dataclasses import dataclass
-from typing import Union
+from collections.abc import Mapping
+from typing import Any, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -137,6 +138,18 @@ class StateLayout:
     def angles(self) -> npt.NDArray[np.bool_]:
         """``(n,)`` mask of the pose-angle scalars of the state."""
         return angle_mask(self.dim, self.kinds)
+
+
+def replaced_fields(value: Any, changes: Mapping[str, object]) -> dict[str, Any]:
+    """Return the fields of a dataclass map with ``changes`` applied, for building its copy.
+
+    The ``layout`` field is dropped (to be rebuilt) when ``dim`` or ``kinds`` change, kept otherwise.
+    """
+    values = {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    values.update(changes)
+    if "dim" in changes or "kinds" in changes:
+        values["layout"] = None
+    return values
 
 
 class VariableLayout:
@@ -312,11 +325,7 @@ class LocalMap(VariableLayout):
     def replace(self, **changes: object) -> "LocalMap":
         """Return a copy with some fields changed, without re-validating (the layout is shared
         unless ``dim`` or ``kinds`` change)."""
-        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        values.update(changes)
-        if "dim" in changes or "kinds" in changes:
-            values["layout"] = None
-        return LocalMap.trusted(**values)  # type: ignore[arg-type]
+        return LocalMap.trusted(**replaced_fields(self, changes))
 
     # ------------------------------------------------------------------ validation
 

@@ -66,8 +66,3 @@ def set_blas_threads(n_threads: int | None) -> None:
     except ImportError:  # pragma: no cover - threadpoolctl is a pinned dependency
         return
     threadpool_limits(limits=n_threads, user_api="blas")  # applies on construction
-
-
-def blas_threads_for(method: str) -> int | None:
-    """Return the BLAS thread count measured best for a joining method (1 for sequential)."""
-    return 1 if method == "sequential" else None

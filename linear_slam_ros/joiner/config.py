@@ -120,9 +120,8 @@ def _convert(f: dataclasses.Field[Any], value: Any) -> Any:
         except ValueError:
             allowed = [e.value for e in enum_type]
             raise ConfigError(f"parameter {f.name}={value!r} is not valid: allowed values are {allowed}") from None
-    if isinstance(default, bool) or not isinstance(value, type(default)) and not (
-        isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool)
-    ):
+    accepted = (int, float) if isinstance(default, float) else type(default)  # an int is a valid float
+    if isinstance(value, bool) != isinstance(default, bool) or not isinstance(value, accepted):
         raise ConfigError(f"parameter {f.name}={value!r} must be of type {type(default).__name__}")
     if isinstance(default, float):
         value = float(value)

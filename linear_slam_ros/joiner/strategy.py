@@ -150,3 +150,25 @@ class FoldStrategy(Generic[StateT, ResultT]):
         if result is None:
             raise InvalidMapError(f"no joined map: the {len(maps)} local maps gave none")
         return result, steps
+
+
+class BatchStrategy(FoldStrategy[tuple[LocalMap, ...], ResultT]):
+    """Base of batch strategies: :meth:`step` collects the submaps, :meth:`result` runs :meth:`run` on them.
+
+    Subclasses define ``run``, ``express`` and the class attributes of :class:`JoinStrategy`.
+    """
+
+    online: ClassVar[bool] = False
+    run_step: ClassVar[str] = PER_JOIN
+
+    def empty(self) -> tuple[LocalMap, ...]:
+        """Return no submaps."""
+        return ()
+
+    def step(self, state: tuple[LocalMap, ...], submap: LocalMap) -> tuple[LocalMap, ...]:
+        """Collect one submap."""
+        return (*state, submap)
+
+    def result(self, state: tuple[LocalMap, ...]) -> ResultT | None:
+        """Join the collected submaps (``None`` when there is none)."""
+        return self.run(state)[0] if state else None

@@ -23,7 +23,6 @@ import dataclasses
 import functools
 import logging
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 import numpy.typing as npt
@@ -33,7 +32,7 @@ import scipy.linalg.blas
 from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian
 from linear_slam_ros.core.geometry import angle_size, pose_size, wrap_angle
-from linear_slam_ros.core.local_map import POSE, LocalMap, StateLayout, VariableLayout, pose_key, to_dense, var_offsets
+from linear_slam_ros.core.local_map import POSE, LocalMap, StateLayout, VariableLayout, replaced_fields, pose_key, to_dense, var_offsets
 
 logger = logging.getLogger(__name__)
 
@@ -174,11 +173,7 @@ class CovarianceMap(VariableLayout):
 
     def replace(self, **changes: object) -> "CovarianceMap":
         """Return a copy with some fields changed (the layout is shared unless ``dim`` or ``kinds`` change)."""
-        values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        values.update(changes)
-        if "dim" in changes or "kinds" in changes:
-            values["layout"] = None
-        return CovarianceMap(**values)  # type: ignore[arg-type]
+        return CovarianceMap(**replaced_fields(self, changes))
 
     def change_frame(self, new_frame_id: int, _in_place: bool = False) -> "CovarianceMap":
         """Re-express the map in the frame of its pose ``new_frame_id`` (``S' = H S H^T``, exactly).
@@ -366,13 +361,3 @@ def sequential_step(state: SequentialState, submap: LocalMap) -> SequentialState
     if fused.end_id is not None and fused.end_id != fused.frame_id:
         fused = fused.change_frame(fused.end_id, _in_place=True)
     return SequentialState(fused, state.n_joined + 1)
-
-
-def join_sequential(maps: Iterable[LocalMap]) -> LocalMap:
-    """Join maps exactly and sequentially; return the global map in the last end pose's frame."""
-    state = SequentialState()
-    for m in maps:
-        state = sequential_step(state, m)
-    if state.global_map is None:
-        raise InvalidMapError("no local maps to join")
-    return state.global_map.to_local_map()

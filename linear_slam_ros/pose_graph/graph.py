@@ -67,7 +67,7 @@ class PoseGraph:
         if self.dim not in (2, 3):
             raise GraphError(f"{who}: dimension must be 2 or 3, got {self.dim}")
         p = pose_size(self.dim)
-        k = self.from_ids.shape[0] if np.ndim(self.from_ids) == 1 else -1
+        k = np.shape(self.from_ids)[0] if np.ndim(self.from_ids) == 1 else -1
         if k == 0 and np.shape(self.to_ids) == (0,):
             raise GraphError(f"{who} has no edges")
         if k < 1 or np.shape(self.to_ids) != (k,):

@@ -143,12 +143,12 @@ class JoinerNode(Node):
     def _on_pose_graph(self, msg: Float64MultiArray) -> None:
         self.n_received += 1
         try:
-            chunk = decode_chunk(*parts(msg)).chunk
-            submap = chunk_to_local_map(chunk)
+            decoded = decode_chunk(*parts(msg))
+            submap = chunk_to_local_map(decoded.graph)
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"pose_graph rejected: {exc}")
             return
-        self._offer(submap, chunk.seq)
+        self._offer(submap, decoded.seq)
 
     def _offer(self, submap: Any, seq: int) -> None:
         with self._lock:

@@ -64,11 +64,8 @@ def recorder_qos() -> QoSProfile:
 
     Transient local receives the message a latched publisher (the joiner's ``global_map``)
     already holds when the recorder starts; keep all keeps every later one until it is written,
-    however slowly the recorder spins.
+    however slowly the recorder spins. Only transient-local publishers match it.
     """
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_ALL,
-        depth=1,
-        reliability=ReliabilityPolicy.RELIABLE,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL,
-    )
+    profile = latched_qos()
+    profile.history = HistoryPolicy.KEEP_ALL
+    return profile

@@ -22,6 +22,8 @@ os.environ.update(loopback_env(20 + os.getpid() % 70))
 from rclpy.serialization import deserialize_message  # noqa: E402  (after the environment is set)
 from std_msgs.msg import Float64MultiArray  # noqa: E402
 
+from linear_slam_ros.ros.bagio import BagRecord  # noqa: E402
+from linear_slam_ros.ros.player import play  # noqa: E402
 from linear_slam_ros.ros.spin import LatestMessage  # noqa: E402
 from msg_adapters import decode_map  # noqa: E402
 from msg_adapters.ros import parts  # noqa: E402
@@ -51,6 +53,10 @@ class JoinerProcess:
 
     def topic(self, name: str) -> str:
         return f"/{self.namespace}/{name}"
+
+    def play(self, node, records: list[BagRecord], wait_s: float = 60.0) -> float:
+        """Play bag records into this joiner's namespace as fast as possible; return the seconds spent publishing."""
+        return play(node, [r._replace(topic=self.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=wait_s)
 
     def stop(self, timeout_s: float = 15.0) -> tuple[int, str]:
         """Stop the joiner (Ctrl-C, then kill); return its exit code and output."""

@@ -55,7 +55,7 @@ def test_replay_equals_offline_core(name, mode, node, start_joiner, read_benchma
     assert len(records) == len(maps)
     joiner = start_joiner(mode=mode, publish_rate=10.0)
     t0 = time.monotonic()
-    publish_s = play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    publish_s = joiner.play(node, records)
     final, t_final = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 600.0, joiner)
     code, output = joiner.stop()
     assert code == 0, output[-2000:]
@@ -95,7 +95,7 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     records = list(read_messages(_bag(name)))
     saved = tmp_path / "saved_map"
     joiner = start_joiner(mode="sequential", map_type="feature-only", publish_rate=10.0, save_directory=str(saved))
-    play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    joiner.play(node, records)
     final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner,
                                    decode=decode_feature_map)
     result = _call(node, joiner, "save_map")
@@ -109,11 +109,11 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     assert final.stats["n_joined"] == len(maps) and final.stats["n_rejected"] == 0
     from threadpoolctl import threadpool_limits
 
-    from linear_slam_ros.core.runtime import blas_threads_for
+    from linear_slam_ros.joiner.registry import get_strategy
 
     # the node's BLAS thread count: the feature-only chain carries rounding differences of the
     # BLAS schedule to ~1e-6 m (VicPark200), so the bit-level comparison uses the same one
-    with threadpool_limits(limits=blas_threads_for("sequential")):
+    with threadpool_limits(limits=get_strategy("sequential", "feature-only").blas_threads):
         offline = join_features_sequential([to_feature_only(g) for g in precondition(maps)])
     got = final.feature_map
     assert got.frame_ids == offline.frame_ids
@@ -198,8 +198,7 @@ def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark
     from linear_slam_ros.core.frames import change_frame
     from linear_slam_ros.evaluation.nonlinear import gauss_newton
     from linear_slam_ros.evaluation.objective import MapObjective
-    from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
-    from linear_slam_ros.pose_graph.lago import edge_maps, graph_from_local_maps
+    from linear_slam_ros.pose_graph.chunks import chunk_to_local_map, edge_maps, graph_from_local_maps
     from linear_slam_ros.ros.bag_from_dataset import chunk_of
 
     maps = list(read_benchmark(name).maps)
@@ -209,7 +208,7 @@ def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark
     records = list(read_messages(bag))
     joiner = start_joiner(mode="online-dc", publish_rate=10.0)
     t0 = time.monotonic()
-    play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+    joiner.play(node, records)
     final, t_final = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(records), 600.0, joiner)
     code, output = joiner.stop()
     assert code == 0, output[-2000:]

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.joiner.strategy import PER_JOIN, FoldStrategy, JoinMethod, MapType, Progress
+from linear_slam_ros.joiner.strategy import BatchStrategy, FoldStrategy, JoinMethod, MapType, Progress
 from linear_slam_ros.joining.divide_conquer import (
     OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step,
 )
@@ -40,27 +40,13 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
         return change_frame(result, pose_id)
 
 
-class BatchDC(FoldStrategy[tuple[LocalMap, ...], LocalMap]):
+class BatchDC(BatchStrategy[LocalMap]):
     """The submaps collected, then joined by divide and conquer when the result is asked for."""
 
     method: ClassVar[JoinMethod] = JoinMethod.DC
     map_type: ClassVar[MapType] = MapType.AS_IS
-    online: ClassVar[bool] = False
     result_type: ClassVar[type] = LocalMap
     blas_threads: ClassVar[int | None] = None
-    run_step: ClassVar[str] = PER_JOIN
-
-    def empty(self) -> tuple[LocalMap, ...]:
-        """Return no submaps."""
-        return ()
-
-    def step(self, state: tuple[LocalMap, ...], submap: LocalMap) -> tuple[LocalMap, ...]:
-        """Collect one submap."""
-        return (*state, submap)
-
-    def result(self, state: tuple[LocalMap, ...]) -> LocalMap | None:
-        """Join the collected submaps (``None`` when there is none)."""
-        return join_divide_and_conquer(state) if state else None
 
     def express(self, result: LocalMap, pose_id: int) -> LocalMap:
         """Return the map in the frame of pose ``pose_id``."""
@@ -76,4 +62,3 @@ class BatchDC(FoldStrategy[tuple[LocalMap, ...], LocalMap]):
                 progress(1)
 
         return join_divide_and_conquer(maps, on_join), steps
-

@@ -16,7 +16,7 @@ from linear_slam_ros.feature_only.joining import join_features_dc, join_features
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
 from linear_slam_ros.feature_only.precondition import precondition
-from linear_slam_ros.joiner.strategy import PER_JOIN, FoldStrategy, JoinMethod, MapType, Progress
+from linear_slam_ros.joiner.strategy import PER_JOIN, BatchStrategy, FoldStrategy, JoinMethod, MapType, Progress
 
 BatchJoin = Callable[[Sequence[FeatureMap], Callable[[float], None] | None], FeatureMap]
 
@@ -78,27 +78,13 @@ class FeatureOnlineDC(_FeatureStreaming):
     divide_and_conquer: ClassVar[bool] = True
 
 
-class FeatureBatchDC(FoldStrategy[tuple[LocalMap, ...], FeatureMap]):
+class FeatureBatchDC(BatchStrategy[FeatureMap]):
     """The submaps collected, then preconditioned, converted and joined by divide and conquer."""
 
     method: ClassVar[JoinMethod] = JoinMethod.DC
     map_type: ClassVar[MapType] = MapType.FEATURE_ONLY
-    online: ClassVar[bool] = False
     result_type: ClassVar[type] = FeatureMap
     blas_threads: ClassVar[int | None] = None
-    run_step: ClassVar[str] = PER_JOIN
-
-    def empty(self) -> tuple[LocalMap, ...]:
-        """Return no submaps."""
-        return ()
-
-    def step(self, state: tuple[LocalMap, ...], submap: LocalMap) -> tuple[LocalMap, ...]:
-        """Collect one submap."""
-        return (*state, submap)
-
-    def result(self, state: tuple[LocalMap, ...]) -> FeatureMap | None:
-        """Join the collected submaps (``None`` when there is none)."""
-        return _run_batch(join_features_dc, state, None)[0] if state else None
 
     def express(self, result: FeatureMap, pose_id: int) -> FeatureMap:
         """Return ``result`` unchanged: a feature-only map has no pose frame."""

@@ -1,0 +1,52 @@
+"""The typed config: defaults, conversions, and every rejection naming parameter, value and allowed values."""
+
+from __future__ import annotations
+
+import pytest
+
+from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, parameter_declarations
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+
+
+def test_defaults_and_conversions():
+    assert JoinerConfig.from_mapping({}) == JoinerConfig()
+    config = JoinerConfig.from_mapping(
+        {"mode": "online-dc", "map_type": "feature-only", "output_frame": "first_pose", "publish_rate": 5, "queue_depth": 10}
+    )
+    assert config.mode is JoinMethod.ONLINE_DC and config.map_type is MapType.FEATURE_ONLY
+    assert config.output_frame is OutputFrame.FIRST_POSE
+    assert config.publish_rate == 5.0 and isinstance(config.publish_rate, float) and config.queue_depth == 10
+
+
+def test_declarations_follow_the_config_fields():
+    decls = {d.name: d for d in parameter_declarations()}
+    assert list(decls) == [f for f in JoinerConfig.__dataclass_fields__]
+    assert decls["mode"].default == "sequential" and decls["mode"].spec.read_only
+    assert decls["mode"].choices == ("sequential", "dc", "online-dc")
+    assert decls["publish_rate"].spec.bounds == (0.05, 100.0) and not decls["publish_rate"].spec.read_only
+
+
+@pytest.mark.parametrize(
+    ("values", "online", "match"),
+    [
+        ({"mode": "online_dc"}, True,
+         r"parameter mode='online_dc' is not valid: allowed values are \['sequential', 'dc', 'online-dc'\]"),
+        ({"map_type": "features"}, True, r"parameter map_type='features' is not valid: allowed values are \['as-is', 'feature-only'\]"),
+        ({"mode": "dc"}, True, r"parameter mode='dc' is not allowed with map_type='as-is': allowed values are \['sequential', 'online-dc'\]"),
+        ({"output_frame": "world"}, True, r"parameter output_frame='world' is not valid: allowed values are \['end_pose', 'first_pose'\]"),
+        ({"publish_rate": 0.0}, True, r"parameter publish_rate=0.0 is outside its range \[0.05, 100\]"),
+        ({"reorder_window": 0}, True, r"parameter reorder_window=0 is outside its range \[1, 1e\+06\]"),
+        ({"queue_depth": 1.5}, True, r"parameter queue_depth=1.5 must be of type int"),
+        ({"queue_depth": True}, True, r"parameter queue_depth=True must be of type int"),
+        ({"map_frame": 3}, True, r"parameter map_frame=3 must be of type str"),
+        ({"colour": "red"}, True, r"unknown parameter 'colour'"),
+    ],
+)
+def test_invalid_values_name_parameter_value_and_allowed_values(values, online, match):
+    with pytest.raises(ConfigError, match=match):
+        JoinerConfig.from_mapping(values, online=online)
+
+
+def test_batch_methods_are_allowed_offline():
+    assert JoinerConfig.from_mapping({"mode": "dc"}, online=False).mode is JoinMethod.DC

@@ -41,17 +41,17 @@ Pose-graph chunk (the relative-pose constraints of one submap)::
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import InvalidMapError, MessageError
-from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.core.geometry import pose_size
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, to_csr
+from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.pose_graph.graph import PoseGraph
 
 FloatArray = npt.NDArray[np.float64]
@@ -167,11 +167,11 @@ def _encode_map_segments(
     ids: npt.ArrayLike,
     kinds: npt.ArrayLike,
     x: FloatArray,
-    info: FloatArray | sp.spmatrix,
+    info: InfoMatrix,
     stats: dict[str, float] | None,
     extra: Sequence[tuple[str, npt.ArrayLike]] = (),
 ) -> Encoded:
-    upper = sp.triu(sp.coo_matrix(info), format="coo")
+    upper = sp.triu(to_csr(info), format="coo")
     segments: list[tuple[str, npt.ArrayLike]] = [
         ("header", header),
         ("var_ids", ids),
@@ -187,7 +187,9 @@ def _encode_map_segments(
     return _encode(segments)
 
 
-def _segments(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, offset: int, required: Sequence[str], what: str) -> dict[str, FloatArray]:
+def _segments(
+    labels: Sequence[str], sizes: Sequence[int], data: FloatArray, offset: int, required: Sequence[str], what: str
+) -> dict[str, FloatArray]:
     data = np.asarray(data, dtype=np.float64)
     if offset != 0:
         raise MessageError(f"{what}: layout.data_offset must be 0, got {offset}")
@@ -198,7 +200,7 @@ def _segments(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, off
         raise MessageError(f"{what}: layout sizes add up to {total} values but data has {data.size}")
     out: dict[str, FloatArray] = {}
     pos = 0
-    for label, size in zip(labels, sizes):
+    for label, size in zip(labels, sizes, strict=False):
         if label in out:
             raise MessageError(f"{what}: segment {label!r} appears twice")
         out[label] = data[pos : pos + int(size)]
@@ -281,7 +283,7 @@ def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatA
     stored = info.toarray() if n <= DENSE_MAX else info
     stats = None
     if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
-        stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"])}
+        stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"], strict=False)}
     return _MapFields(
         dim, map_kind, seq, Stamp(int(h[4]), int(h[5])), int(h[6]), None if h[7] < 0 else int(h[7]), int(h[8]),
         ids, kinds, seg["state"].copy(), stored, stats, seg, what,
@@ -302,7 +304,8 @@ def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, da
     name = f"{'local' if f.map_kind == MAP_KIND_LOCAL else 'global'} map seq {f.seq}"
     kinds = f.kinds
     if np.any((kinds != 0) & (kinds != 1)):
-        raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {kinds[(kinds != 0) & (kinds != 1)][0]}")
+        bad = kinds[(kinds != 0) & (kinds != 1)][0]
+        raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {bad}")
     local_map = LocalMap(f.dim, f.frame_pose_id, f.end_pose_id, f.ids, kinds.astype(np.int8), f.state, f.info, name=name)
     return MapMessage(local_map, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
 

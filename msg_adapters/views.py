@@ -18,10 +18,10 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import rotation
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
+from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -47,7 +47,8 @@ def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
     """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``."""
     header = Header(stamp=stamp, frame_id=frame_id)
     poses = [(global_map.frame_id, np.zeros(global_map.dim + (1 if global_map.dim == 2 else 3)))]
-    poses += [(int(global_map.ids[i]), global_map.x[global_map.scalar_slice(i)]) for i in np.flatnonzero(global_map.kinds == POSE)]
+    pose_vars = np.flatnonzero(global_map.kinds == POSE)
+    poses += [(int(global_map.ids[i]), global_map.x[global_map.scalar_slice(int(i))]) for i in pose_vars]
     poses.sort(key=lambda item: item[0])
     msg = Path(header=header)
     msg.poses = [PoseStamped(header=header, pose=pose_to_msg(global_map.dim, p)) for _, p in poses]
@@ -120,8 +121,8 @@ def feature_covariances(global_map: LocalMap, max_state: int) -> dict[int, Float
     """Return each feature's marginal covariance, or ``None`` above ``max_state`` scalars."""
     if global_map.state_dim > max_state or not np.any(global_map.kinds == FEATURE):
         return None
-    cov = np.linalg.inv(global_map.info_dense())
-    out = {}
+    cov = np.asarray(np.linalg.inv(global_map.info_dense()), dtype=np.float64)
+    out: dict[int, FloatArray] = {}
     for i in np.flatnonzero(global_map.kinds == FEATURE).tolist():
         sl = global_map.scalar_slice(i)
         out[int(global_map.ids[i])] = cov[sl, sl]

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.joiner.joiner import Joiner, global_map_of
 from linear_slam_ros.evaluation.runner import run_join
-from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joiner.joiner import Joiner, global_map_of
+from linear_slam_ros.joiner.strategy import JoinMethod
 
 
 @pytest.fixture

@@ -6,13 +6,11 @@ Only parses arguments and calls library functions; everything it does is scripta
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
-
 
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
@@ -129,10 +127,7 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
 def cmd_lago(args: argparse.Namespace) -> int:
     """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine."""
     source = Path(args.graph)
-    if source.suffix == ".g2o":
-        graph = read_g2o(source)
-    else:
-        graph = graph_from_local_maps(list(read_dataset(source).maps))
+    graph = read_g2o(source) if source.suffix == ".g2o" else graph_from_local_maps(list(read_dataset(source).maps))
     result = lago(graph, args.anchor)
     edges = edge_maps(graph)
     report: dict[str, object] = {

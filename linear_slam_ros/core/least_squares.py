@@ -52,7 +52,7 @@ class GaussNewtonResult:
 
 def gauss_newton(
     residuals: Residuals,
-    weight: sp.csr_matrix,
+    weight: sp.csr_matrix | sp.csr_array,
     x0: FloatArray,
     apply_step: Callable[[FloatArray, FloatArray], FloatArray] | None = None,
     max_iterations: int = 50,

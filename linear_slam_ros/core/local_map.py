@@ -12,9 +12,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-from dataclasses import dataclass
 from collections.abc import Mapping
-from typing import Any, Union
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -34,7 +34,7 @@ FEATURE: int = 1
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
-InfoMatrix = Union[FloatArray, sp.csr_matrix]
+InfoMatrix = FloatArray | sp.csr_matrix
 
 _DENSE_CHECK_MAX = 3000
 _SYMMETRY_RTOL = 1e-9
@@ -302,7 +302,7 @@ class LocalMap(VariableLayout):
         info: InfoMatrix,
         name: str = "map",
         layout: StateLayout | None = None,
-    ) -> "LocalMap":
+    ) -> LocalMap:
         """Build a map without validation (for values computed by the core itself).
 
         ``layout`` is shared when given (it must be that of ``dim`` and ``kinds``).
@@ -322,7 +322,7 @@ class LocalMap(VariableLayout):
             object.__setattr__(obj, field, value)
         return obj
 
-    def replace(self, **changes: object) -> "LocalMap":
+    def replace(self, **changes: object) -> LocalMap:
         """Return a copy with some fields changed, without re-validating (the layout is shared
         unless ``dim`` or ``kinds`` change)."""
         return LocalMap.trusted(**replaced_fields(self, changes))
@@ -454,7 +454,7 @@ def fuse_repeated(
             ref = z[raw_off[first_v] + dim : raw_off[first_v] + sizes[v]]
             z[a] = ref + wrap_angle(z[a] - ref)
     info_f = sel.T @ info @ sel
-    z_f = np.linalg.solve(info_f, sel.T @ (info @ z))
+    z_f = np.asarray(np.linalg.solve(info_f, sel.T @ (info @ z)), dtype=np.float64)
     logger.warning("%s: fused %d repeated variable(s) into one each", name, var_ids.size - uniq.size)
     return fused_ids, fused_kinds, z_f, 0.5 * (info_f + info_f.T)
 

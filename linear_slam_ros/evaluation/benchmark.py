@@ -15,12 +15,12 @@ import gc
 import json
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
-from linear_slam_ros.io.datasets import Dataset, read_dataset
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
 from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
@@ -28,6 +28,7 @@ from linear_slam_ros.evaluation.metrics import rmse
 from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join
+from linear_slam_ros.io.datasets import Dataset, read_dataset
 from linear_slam_ros.joiner.strategy import JoinMethod
 
 logger = logging.getLogger(__name__)
@@ -171,7 +172,8 @@ def _fmt(v: Any, digits: int = 3) -> str:
 def to_markdown(entries: list[dict[str, Any]]) -> str:
     """Return the markdown tables of a benchmark."""
     lines = [
-        "| dataset | method | seconds | reference s | p50 ms | p99 ms | max ms | peak RSS MB | χ² | paper χ² | RMSE pose vs NLS | RMSE feature vs NLS |",
+        "| dataset | method | seconds | reference s | p50 ms | p99 ms | max ms | peak RSS MB | χ² | paper χ² "
+        "| RMSE pose vs NLS | RMSE feature vs NLS |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for e in entries:

@@ -7,8 +7,8 @@ on long datasets (see the datasets README), which is why :func:`refine` takes an
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt

@@ -37,7 +37,7 @@ def to_feature_only(local_map: LocalMap, frame_ids: Sequence[int] | None = None)
         info_f = info[np.ix_(f_idx, f_idx)]
     ids = local_map.ids[feats]
     full_r = local_map.x[f_idx].reshape(-1, d)  # features seen from the frame pose
-    positions = dict(zip(ids.tolist(), full_r))
+    positions = dict(zip(ids.tolist(), full_r, strict=True))
     frame_ids = tuple(frame_ids) if frame_ids is not None else choose_frame_features(d, positions, ids.tolist())
     full_perm, ids_perm, perm = _reorder(d, full_r, ids, frame_ids)
     k = n_frame_features(d)

@@ -7,6 +7,7 @@ A frame is defined by ``F_O`` (origin) and ``F_X`` (x axis), and in 3D ``F_Y`` (
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -164,10 +165,11 @@ def change_feature_frame(fmap: FeatureMap, new_frame_ids: Sequence[int]) -> Feat
     jac_old_order = jac_back[inv]
     g = (expansion_matrix(d, n).T @ jac_old_order @ expansion_matrix(d, n)).tocsr()
     info_old = sp.csr_matrix(fmap.info) if sp.issparse(fmap.info) else np.asarray(fmap.info)
-    info = g.T @ info_old @ g
-    info = info.toarray() if sp.issparse(info) and info.shape[0] <= DENSE_MAX else info
-    if not sp.issparse(info):
-        info = 0.5 * (np.asarray(info) + np.asarray(info).T)
+    info: Any = g.T @ info_old @ g  # sparse, or dense when the old information was dense
+    is_sparse = sp.issparse(info)  # (kept apart: sp.issparse would narrow ``info`` to a type without .toarray)
+    if not is_sparse or info.shape[0] <= DENSE_MAX:
+        dense = info.toarray() if is_sparse else np.asarray(info)
+        info = 0.5 * (dense + dense.T)
     return FeatureMap(d, new_frame_ids, ids_new[k:], x_new, info, fmap.name)
 
 

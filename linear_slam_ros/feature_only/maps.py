@@ -91,7 +91,7 @@ class FeatureMap:
 
     def positions(self) -> dict[int, FloatArray]:
         """Return ``{id: position}`` of every feature, in this map's frame."""
-        return dict(zip(self.all_ids.tolist(), self.full()))
+        return dict(zip(self.all_ids.tolist(), self.full(), strict=True))
 
 
 def expand_reduced(dim: int, x: FloatArray) -> FloatArray:

@@ -76,7 +76,8 @@ def _frame_possible(dim: int, local_map: LocalMap, shared: IntArray) -> bool:
         return False
     if dim == 2:
         return True
-    pos = {int(local_map.ids[i]): local_map.x[local_map.scalar_slice(i)] for i in np.flatnonzero(local_map.kinds == FEATURE)}
+    pos = {int(local_map.ids[i]): local_map.x[local_map.scalar_slice(int(i))]
+           for i in np.flatnonzero(local_map.kinds == FEATURE)}
     try:
         choose_frame_features(dim, pos, shared.tolist())
     except GeometryError:

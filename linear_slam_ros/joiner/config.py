@@ -20,7 +20,7 @@ from linear_slam_ros.joiner.registry import methods
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
 
-class OutputFrame(str, enum.Enum):
+class OutputFrame(enum.StrEnum):
     """Frame of the published global map."""
 
     END_POSE = "end_pose"

@@ -163,7 +163,8 @@ class Joiner:
         """
         expected = self.state.next_seq
         if expected is not None and seq < expected or seq in self._pending:
-            self.reject("duplicate_or_late", f"submap seq {seq} arrived after seq {expected - 1 if expected else seq} was handled: dropped")
+            handled = expected - 1 if expected else seq
+            self.reject("duplicate_or_late", f"submap seq {seq} arrived after seq {handled} was handled: dropped")
             return []
         if expected is not None and seq > expected:
             self._pending[seq] = submap

@@ -23,7 +23,7 @@ from linear_slam_ros.core.errors import InvalidMapError
 from linear_slam_ros.core.local_map import LocalMap
 
 
-class JoinMethod(str, enum.Enum):
+class JoinMethod(enum.StrEnum):
     """How submaps are joined (the CLI's ``--method``, the node's ``mode``)."""
 
     SEQUENTIAL = "sequential"
@@ -34,7 +34,7 @@ class JoinMethod(str, enum.Enum):
     """Divide and conquer as submaps arrive: a binary-counter stack, merged for output."""
 
 
-class MapType(str, enum.Enum):
+class MapType(enum.StrEnum):
     """What the joiner keeps of the submaps (the node's ``map_type``)."""
 
     AS_IS = "as-is"
@@ -45,14 +45,13 @@ class MapType(str, enum.Enum):
 
 StateT = TypeVar("StateT")
 ResultT = TypeVar("ResultT")
-ResultT_co = TypeVar("ResultT_co", covariant=True)
 PER_SUBMAP = "per submap"
 PER_JOIN = "per pairwise join"
 Progress = Callable[[int], None]
 """Called with the number of steps (submaps or pairwise joins) just completed."""
 
 
-class JoinStrategy(Protocol[StateT, ResultT_co]):
+class JoinStrategy(Protocol[StateT, ResultT]):
     """A way of joining a stream of submaps.
 
     Attributes:
@@ -84,7 +83,7 @@ class JoinStrategy(Protocol[StateT, ResultT_co]):
         """
         ...
 
-    def result(self, state: StateT) -> ResultT_co | None:
+    def result(self, state: StateT) -> ResultT | None:
         """Return the joined map (``None`` while there is none).
 
         Pose maps are in the robocentric frame of the newest end pose; feature-only maps in the
@@ -92,11 +91,11 @@ class JoinStrategy(Protocol[StateT, ResultT_co]):
         """
         ...
 
-    def express(self, result: ResultT_co, pose_id: int) -> ResultT_co:  # type: ignore[misc]
+    def express(self, result: ResultT, pose_id: int) -> ResultT:
         """Return ``result`` in the frame of pose ``pose_id`` (unchanged for maps without pose frames)."""
         ...
 
-    def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT_co, list[float]]:
+    def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:
         """Join a whole sequence, timing each step.
 
         Returns:

@@ -10,8 +10,9 @@ feature-only maps pass their own join.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence, TypeVar
+from typing import TypeVar
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.local_map import LocalMap

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
-from linear_slam_ros.core.local_map import LocalMap, StateLayout, scalar_indices, to_csr, to_dense, var_offsets
+from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, StateLayout, scalar_indices, to_csr, to_dense, var_offsets
 from linear_slam_ros.core.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
 
 logger = logging.getLogger(__name__)
@@ -97,9 +97,9 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
 
 
 def solve_union(
-    info_a: FloatArray | sp.spmatrix,
+    info_a: InfoMatrix,
     z_a: FloatArray,
-    info_b: FloatArray | sp.spmatrix,
+    info_b: InfoMatrix,
     z_b: FloatArray,
     b_to_union: IntArray,
     n: int,

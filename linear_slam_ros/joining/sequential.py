@@ -32,7 +32,16 @@ import scipy.linalg.blas
 from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian
 from linear_slam_ros.core.geometry import angle_size, pose_size, wrap_angle
-from linear_slam_ros.core.local_map import POSE, LocalMap, StateLayout, VariableLayout, replaced_fields, pose_key, to_dense, var_offsets
+from linear_slam_ros.core.local_map import (
+    POSE,
+    LocalMap,
+    StateLayout,
+    VariableLayout,
+    pose_key,
+    replaced_fields,
+    to_dense,
+    var_offsets,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -96,7 +105,7 @@ class CovarianceMap(VariableLayout):
             object.__setattr__(self, "layout", StateLayout(self.dim, self.kinds))
 
     @classmethod
-    def from_local_map(cls, local_map: LocalMap, name: str = "global") -> "CovarianceMap":
+    def from_local_map(cls, local_map: LocalMap, name: str = "global") -> CovarianceMap:
         """Invert a map's information into covariance form (``Q = I``)."""
         info = to_dense(local_map.info)
         try:
@@ -148,7 +157,7 @@ class CovarianceMap(VariableLayout):
             ang = self.offsets[poses][:, None] + np.arange(d, d + angle_size(d))
             blocks = self.ang_blocks
             if inverse:
-                blocks = np.linalg.inv(blocks)
+                blocks = np.linalg.inv(blocks).astype(np.float64, copy=False)
             out[ang] = np.einsum("vij,vjk->vik", blocks, mat[ang])
         return out
 
@@ -171,11 +180,11 @@ class CovarianceMap(VariableLayout):
             self.layout,
         )
 
-    def replace(self, **changes: object) -> "CovarianceMap":
+    def replace(self, **changes: object) -> CovarianceMap:
         """Return a copy with some fields changed (the layout is shared unless ``dim`` or ``kinds`` change)."""
         return CovarianceMap(**replaced_fields(self, changes))
 
-    def change_frame(self, new_frame_id: int, _in_place: bool = False) -> "CovarianceMap":
+    def change_frame(self, new_frame_id: int, _in_place: bool = False) -> CovarianceMap:
         """Re-express the map in the frame of its pose ``new_frame_id`` (``S' = H S H^T``, exactly).
 
         With ``H = D + F E_s^T`` (block diagonal plus the slot's column block) and

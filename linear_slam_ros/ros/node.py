@@ -53,7 +53,8 @@ def _descriptor(decl: ParameterDeclaration) -> ParameterDescriptor:
     if spec.bounds is not None and isinstance(decl.default, int) and not isinstance(decl.default, bool):
         desc.integer_range = [IntegerRange(from_value=int(spec.bounds[0]), to_value=int(spec.bounds[1]), step=1)]
     elif spec.bounds is not None:
-        desc.floating_point_range = [FloatingPointRange(from_value=float(spec.bounds[0]), to_value=float(spec.bounds[1]), step=0.0)]
+        low, high = float(spec.bounds[0]), float(spec.bounds[1])
+        desc.floating_point_range = [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
     return desc
 
 
@@ -224,7 +225,8 @@ class JoinerNode(Node):
         if joined is None:  # feature-only: no group defines a feature frame yet
             return
         self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
-        views = map_views(joined, state.first_pose_id, config.map_frame, self.get_clock().now().to_msg(), config.ellipse_max_state)
+        stamp = self.get_clock().now().to_msg()
+        views = map_views(joined, state.first_pose_id, config.map_frame, stamp, config.ellipse_max_state)
         if views.path is not None:
             self.pub_path.publish(views.path)
         self.pub_markers.publish(views.markers)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError, MessageError
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
 from linear_slam_ros.pose_graph.graph import PoseGraph
-from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
 from msg_adapters.ros import parts, to_msg
@@ -89,7 +89,7 @@ def _mutate(enc, segment, values):
     labels, sizes = list(enc.labels), list(enc.sizes)
     data = []
     pos = 0
-    for lab, size in zip(labels, sizes):
+    for lab, size in zip(labels, sizes, strict=True):
         data.append(np.asarray(values, dtype=float) if lab == segment else enc.data[pos : pos + size])
         pos += size
     return labels, [len(d) for d in data], np.concatenate(data)
@@ -99,13 +99,15 @@ def test_map_message_errors(rng):
     enc = _enc(rng)
     labels, sizes, data = list(enc.labels), list(enc.sizes), enc.data
     header = data[: sizes[0]].copy()
+    state_start = sizes[0] + sizes[1] + sizes[2]
     cases = [
         ((labels, sizes, data, 3), "layout.data_offset must be 0, got 3"),
         ((labels[:-1], sizes, data), "6 labels for 7 sizes"),
         ((labels, sizes, data[:-1]), "layout sizes add up to .* but data has"),
         ((labels[:3] + ["header"] + labels[4:], sizes, data), "segment 'header' appears twice"),
         ((labels[:-1] + ["other"], sizes, data), "missing segment\\(s\\) \\['info_vals'\\]"),
-        (_mutate(enc, "state", np.r_[np.nan, data[sizes[0] + sizes[1] + sizes[2] + 1 : sizes[0] + sizes[1] + sizes[2] + sizes[3]]]), "non-finite values in segment\\(s\\) \\['state'\\]"),
+        (_mutate(enc, "state", np.r_[np.nan, data[state_start + 1 : state_start + sizes[3]]]),
+         "non-finite values in segment\\(s\\) \\['state'\\]"),
         (_mutate(enc, "header", header[:5]), "header has 5 values, format 1 needs 9"),
         (_mutate(enc, "header", np.r_[2, header[1:]]), "unsupported format version 2"),
         (_mutate(enc, "header", np.r_[header[0], 4, header[2:]]), "dimension must be 2 or 3, got 4"),
@@ -162,7 +164,8 @@ def _feature_map(dim, rng):
     from linear_slam_ros.feature_only.precondition import precondition
 
     world = make_world(dim, 12, 20, rng)
-    return join_features_sequential([to_feature_only(g) for g in precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))])
+    groups = precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))
+    return join_features_sequential([to_feature_only(g) for g in groups])
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -186,7 +189,8 @@ def test_feature_only_and_pose_frame_messages_are_not_confused(rng):
 
     fmap = _feature_map(2, rng)
     enc = encode_feature_map(fmap, 2)
-    with pytest.raises(MessageError, match="a feature-only map \\(segment 'frame_features'\\); decode it with decode_feature_map"):
+    match = "a feature-only map \\(segment 'frame_features'\\); decode it with decode_feature_map"
+    with pytest.raises(MessageError, match=match):
         decode_map(enc.labels, enc.sizes, enc.data)
     plain = encode_map(_maps(2, rng)[0], 3)
     with pytest.raises(MessageError, match="no 'frame_features' segment: not a feature-only map"):

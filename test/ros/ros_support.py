@@ -71,7 +71,10 @@ def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeou
     with LatestMessage(node, topic, lambda raw: decode(*parts(deserialize_message(raw, Float64MultiArray)))) as latest:
         try:
             satisfied = latest.wait(done, timeout_s, joiner.process if joiner is not None else None)
+            exited = False
         except ChildProcessError:
+            satisfied, exited = False, True
+        if exited:  # fail outside the except block: the report shows the joiner's output, not a chain
             code, out = joiner.stop()
             pytest.fail(f"joiner exited with {code}:\n{out[-3000:]}")
         if not satisfied:

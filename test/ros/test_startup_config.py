@@ -9,7 +9,8 @@ import pytest
     ("params", "expected"),
     [
         ({"mode": "online_dc"}, "parameter mode='online_dc' is not valid: allowed values are ['sequential', 'dc', 'online-dc']"),
-        ({"mode": "dc"}, "parameter mode='dc' is not allowed with map_type='as-is': allowed values are ['sequential', 'online-dc']"),
+        ({"mode": "dc"},
+         "parameter mode='dc' is not allowed with map_type='as-is': allowed values are ['sequential', 'online-dc']"),
         ({"map_type": "features"}, "parameter map_type='features' is not valid: allowed values are ['as-is', 'feature-only']"),
     ],
 )

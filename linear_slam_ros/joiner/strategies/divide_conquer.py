@@ -9,7 +9,10 @@ from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.joiner.strategy import BatchStrategy, FoldStrategy, JoinMethod, MapType, Progress
 from linear_slam_ros.joining.divide_conquer import (
-    OnlineDCState, join_divide_and_conquer, online_dc_result, online_dc_step,
+    OnlineDCState,
+    join_divide_and_conquer,
+    online_dc_result,
+    online_dc_step,
 )
 
 

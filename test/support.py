@@ -1,15 +1,26 @@
-"""Test support shared by the suites: where the benchmark datasets are, reference joiners."""
+"""Test support shared by the suites: where the benchmark datasets are, reference joiners, and helpers
+only the tests use (the inverse pose, dataset writing, result reading, typed global-map accessors)."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
+import numpy as np
+import numpy.typing as npt
 import pytest
+import scipy.sparse as sp
 
-from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.errors import DatasetError, InvalidMapError
+from linear_slam_ros.core.geometry import angles3, dangles3, drotation, pose_size, rotation, wrap_angle
+from linear_slam_ros.core.local_map import POSE, LocalMap
+from linear_slam_ros.core.solvers import Backend, solve_dense_spd, solve_sparse_spd
+from linear_slam_ros.feature_only.maps import FeatureMap
+from linear_slam_ros.io.datasets import MapKind
+from linear_slam_ros.joiner.config import OutputFrame
+from linear_slam_ros.joiner.joiner import JoinerState, global_result
 from linear_slam_ros.joining.divide_conquer import OnlineDCState, online_dc_result, online_dc_step
 from linear_slam_ros.joining.pairwise import join_pair, to_end_frame
 from linear_slam_ros.joining.sequential import SequentialState, sequential_step
@@ -59,3 +70,106 @@ def join_sequential(maps: Iterable[LocalMap]) -> LocalMap:
     if state.global_map is None:
         raise InvalidMapError("no local maps to join")
     return state.global_map.to_local_map()
+
+
+# ---------------------------------------------------------------- helpers only the tests use
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class InversePose(NamedTuple):
+    """The world origin seen from a pose ``T`` (the inverse transform), with its Jacobian.
+
+    Attributes:
+        translation: ``(..., d)``.
+        angles: ``(..., a)``.
+        d_frame: ``(..., d + a, d + a)`` Jacobian with respect to ``T``.
+    """
+
+    translation: FloatArray
+    angles: FloatArray
+    d_frame: FloatArray
+
+
+def inverse_pose(dim: int, t_frame: FloatArray, ang_frame: FloatArray) -> InversePose:
+    """Return the pose of the world origin in the frame of ``T``: ``(-R_T t_T, angles(R_T^T))``."""
+    d = dim
+    rot = rotation(dim, ang_frame)
+    drot = drotation(dim, ang_frame)
+    t_inv = -np.einsum("...ij,...j->...i", rot, t_frame)
+    p = pose_size(dim)
+    jac = np.zeros(t_inv.shape[:-1] + (p, p))
+    jac[..., :d, :d] = -rot
+    jac[..., :d, d:] = -np.einsum("...kij,...j->...ik", drot, t_frame)
+    if dim == 2:
+        ang = wrap_angle(-ang_frame)
+        jac[..., 2, 2] = -1.0
+    else:
+        rot_inv = np.swapaxes(rot, -1, -2)
+        ang = angles3(rot_inv)
+        jac[..., 3:, 3:] = dangles3(rot_inv, np.swapaxes(drot, -1, -2))
+    return InversePose(t_inv, ang, jac)
+
+
+def solve_spd(matrix: FloatArray | sp.spmatrix, rhs: FloatArray, backend: Backend = "auto") -> FloatArray:
+    """Solve an SPD system, densely when ``matrix`` is an ``ndarray``, else sparsely."""
+    if isinstance(matrix, np.ndarray) or not sp.issparse(matrix):  # an ndarray is never sparse
+        return solve_dense_spd(np.asarray(matrix), rhs)
+    return solve_sparse_spd(matrix, rhs, backend)
+
+
+def format_local_map(local_map: LocalMap, kind: MapKind) -> str:
+    """Return a map in the benchmark text format (inverse of :func:`parse_local_map_text`)."""
+    scalar_ids = []
+    for vid, vk, size in zip(local_map.ids.tolist(), local_map.kinds.tolist(), local_map.sizes.tolist(), strict=True):
+        tag = -vid if (kind.has_features and vk == POSE) else vid
+        scalar_ids.extend([tag] * size)
+    lines = [str(local_map.frame_id), str(local_map.state_dim)]
+    lines += [f"{i} {v:.17g}" for i, v in zip(scalar_ids, local_map.x.tolist(), strict=True)]
+    info = local_map.info_dense()
+    lines += [" ".join(f"{v:.17g}" for v in row) for row in info.tolist()]
+    return "\n".join(lines) + "\n"
+
+
+def write_dataset(maps: Sequence[LocalMap], folder: Path, kind: MapKind) -> None:
+    """Write maps as ``folder/localmap_<i>.txt``, ``i = 1..N``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for i, m in enumerate(maps, start=1):
+        (folder / f"localmap_{i}.txt").write_text(format_local_map(m, kind))
+
+
+def read_rows(path: Path) -> dict[int, FloatArray]:
+    """Read a poses or features file back into ``{id: values}``."""
+    out: dict[int, FloatArray] = {}
+    try:
+        for line in Path(path).read_text().splitlines():
+            parts = line.split()
+            if parts:
+                out[int(parts[0])] = np.array([float(v) for v in parts[1:]])
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from None
+    return out
+
+
+def global_map_of(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> LocalMap | None:
+    """Return the global pose map in the robocentric end-pose frame or the first pose's frame.
+
+    Raises:
+        InvalidMapError: the strategy's maps have no pose frame (see :func:`global_feature_map_of`).
+    """
+    if state.strategy.result_type is not LocalMap:
+        raise InvalidMapError(f"a {state.map_type.value} joiner has no pose frame: use global_feature_map_of")
+    result: LocalMap | None = global_result(state, output_frame)
+    return result
+
+
+def global_feature_map_of(state: JoinerState) -> FeatureMap | None:
+    """Return the feature-only global map (in the frame of its longest-baseline features).
+
+    Raises:
+        InvalidMapError: the strategy does not make feature-only maps.
+    """
+    if state.strategy.result_type is not FeatureMap:
+        raise InvalidMapError(f"a joiner with map_type {state.map_type.value!r} has no feature-only map")
+    result: FeatureMap | None = global_result(state)
+    return result

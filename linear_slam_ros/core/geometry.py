@@ -21,8 +21,6 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
-from linear_slam_ros.core.errors import GeometryError
-
 FloatArray = npt.NDArray[np.float64]
 
 TWO_PI = 2.0 * np.pi
@@ -41,13 +39,6 @@ def angle_size(dim: int) -> int:
 def pose_size(dim: int) -> int:
     """Return the number of scalars of a pose in ``dim`` dimensions (3 or 6)."""
     return dim + angle_size(dim)
-
-
-def check_dim(dim: int) -> int:
-    """Return ``dim`` if it is 2 or 3, else raise :class:`GeometryError`."""
-    if dim not in (2, 3):
-        raise GeometryError(f"dimension must be 2 or 3, got {dim!r}")
-    return dim
 
 
 def wrap_angle(angle: npt.ArrayLike) -> FloatArray:
@@ -214,18 +205,7 @@ class PosesInFrame(NamedTuple):
     d_frame: FloatArray
 
 
-class InversePose(NamedTuple):
-    """The world origin seen from a pose ``T`` (the inverse transform), with its Jacobian.
 
-    Attributes:
-        translation: ``(..., d)``.
-        angles: ``(..., a)``.
-        d_frame: ``(..., d + a, d + a)`` Jacobian with respect to ``T``.
-    """
-
-    translation: FloatArray
-    angles: FloatArray
-    d_frame: FloatArray
 
 
 def points_to_frame(dim: int, t_frame: FloatArray, ang_frame: FloatArray, points: FloatArray) -> PointsInFrame:
@@ -277,26 +257,6 @@ def poses_to_frame(
         d_pose[..., 3:, 3:] = dangles3(rel, dir_pose)
         d_frame[..., 3:, 3:] = dangles3(rel, dir_frame)
     return PosesInFrame(pts.points, ang, d_pose, d_frame)
-
-
-def inverse_pose(dim: int, t_frame: FloatArray, ang_frame: FloatArray) -> InversePose:
-    """Return the pose of the world origin in the frame of ``T``: ``(-R_T t_T, angles(R_T^T))``."""
-    d = dim
-    rot = rotation(dim, ang_frame)
-    drot = drotation(dim, ang_frame)
-    t_inv = -np.einsum("...ij,...j->...i", rot, t_frame)
-    p = pose_size(dim)
-    jac = np.zeros(t_inv.shape[:-1] + (p, p))
-    jac[..., :d, :d] = -rot
-    jac[..., :d, d:] = -np.einsum("...kij,...j->...ik", drot, t_frame)
-    if dim == 2:
-        ang = wrap_angle(-ang_frame)
-        jac[..., 2, 2] = -1.0
-    else:
-        rot_inv = np.swapaxes(rot, -1, -2)
-        ang = angles3(rot_inv)
-        jac[..., 3:, 3:] = dangles3(rot_inv, np.swapaxes(drot, -1, -2))
-    return InversePose(t_inv, ang, jac)
 
 
 def points_from_frame(dim: int, t_frame: FloatArray, ang_frame: FloatArray, local: FloatArray) -> FloatArray:

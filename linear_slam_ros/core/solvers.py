@@ -131,10 +131,3 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     except RuntimeError as exc:
         raise SolverError(f"sparse LU failed on a {matrix.shape[0]}x{matrix.shape[0]} system: {exc}") from None
     return lu.solve(rhs)
-
-
-def solve_spd(matrix: FloatArray | sp.spmatrix, rhs: FloatArray, backend: Backend = "auto") -> FloatArray:
-    """Solve an SPD system, densely when ``matrix`` is an ``ndarray``, else sparsely."""
-    if isinstance(matrix, np.ndarray) or not sp.issparse(matrix):  # an ndarray is never sparse
-        return solve_dense_spd(np.asarray(matrix), rhs)
-    return solve_sparse_spd(matrix, rhs, backend)

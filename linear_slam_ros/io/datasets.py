@@ -12,7 +12,7 @@ import logging
 import os
 import re
 import tarfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -248,26 +248,6 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
     return Dataset(name, map_kind, maps)
 
 
-def format_local_map(local_map: LocalMap, kind: MapKind) -> str:
-    """Return a map in the benchmark text format (inverse of :func:`parse_local_map_text`)."""
-    scalar_ids = []
-    for vid, vk, size in zip(local_map.ids.tolist(), local_map.kinds.tolist(), local_map.sizes.tolist(), strict=True):
-        tag = -vid if (kind.has_features and vk == POSE) else vid
-        scalar_ids.extend([tag] * size)
-    lines = [str(local_map.frame_id), str(local_map.state_dim)]
-    lines += [f"{i} {v:.17g}" for i, v in zip(scalar_ids, local_map.x.tolist(), strict=True)]
-    info = local_map.info_dense()
-    lines += [" ".join(f"{v:.17g}" for v in row) for row in info.tolist()]
-    return "\n".join(lines) + "\n"
-
-
-def write_dataset(maps: Sequence[LocalMap], folder: Path, kind: MapKind) -> None:
-    """Write maps as ``folder/localmap_<i>.txt``, ``i = 1..N``."""
-    folder.mkdir(parents=True, exist_ok=True)
-    for i, m in enumerate(maps, start=1):
-        (folder / f"localmap_{i}.txt").write_text(format_local_map(m, kind))
-
-
 def write_poses(path: Path, local_map: LocalMap, origin_id: int = 0) -> None:
     """Write ``k x y phi`` / ``k x y z alpha beta gamma`` lines for every pose, sorted by ``k``.
 
@@ -302,19 +282,6 @@ def _write_rows(path: Path, rows: Iterable[tuple[int, FloatArray]]) -> None:
     with open(path, "w") as fh:
         for k, vals in rows:
             fh.write(f"{k} " + " ".join(f"{v:.17g}" for v in vals) + "\n")
-
-
-def read_rows(path: Path) -> dict[int, FloatArray]:
-    """Read a poses or features file back into ``{id: values}``."""
-    out: dict[int, FloatArray] = {}
-    try:
-        for line in Path(path).read_text().splitlines():
-            parts = line.split()
-            if parts:
-                out[int(parts[0])] = np.array([float(v) for v in parts[1:]])
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"cannot read {path}: {exc}") from None
-    return out
 
 
 __all__ = [

@@ -14,10 +14,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from linear_slam_ros.core.errors import InvalidMapError, LinearSlamError
+from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.timing import latency
-from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
@@ -82,30 +81,6 @@ def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFr
     if result is None or OutputFrame(output_frame) is OutputFrame.END_POSE or state.first_pose_id is None:
         return result
     return strategy.express(result, state.first_pose_id)
-
-
-def global_map_of(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> LocalMap | None:
-    """Return the global pose map in the robocentric end-pose frame or the first pose's frame.
-
-    Raises:
-        InvalidMapError: the strategy's maps have no pose frame (see :func:`global_feature_map_of`).
-    """
-    if state.strategy.result_type is not LocalMap:
-        raise InvalidMapError(f"a {state.map_type.value} joiner has no pose frame: use global_feature_map_of")
-    result: LocalMap | None = global_result(state, output_frame)
-    return result
-
-
-def global_feature_map_of(state: JoinerState) -> FeatureMap | None:
-    """Return the feature-only global map (in the frame of its longest-baseline features).
-
-    Raises:
-        InvalidMapError: the strategy does not make feature-only maps.
-    """
-    if state.strategy.result_type is not FeatureMap:
-        raise InvalidMapError(f"a joiner with map_type {state.map_type.value!r} has no feature-only map")
-    result: FeatureMap | None = global_result(state)
-    return result
 
 
 @dataclass

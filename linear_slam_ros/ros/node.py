@@ -23,7 +23,6 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -35,6 +34,7 @@ from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDe
 from linear_slam_ros.joiner.joiner import Joiner, JoinerState, global_result
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+from linear_slam_ros.ros.qos import inbound_qos, latched_qos
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_global
 from msg_adapters.ros import parts, to_msg
@@ -81,16 +81,7 @@ class JoinerNode(Node):
         self._next_publish = 0.0
 
         depth = config.queue_depth
-        inbound = QoSProfile(
-            history=HistoryPolicy.KEEP_ALL if depth == 0 else HistoryPolicy.KEEP_LAST,
-            depth=max(depth, 1),
-            reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.VOLATILE,
-        )
-        latched = QoSProfile(
-            history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-            durability=DurabilityPolicy.TRANSIENT_LOCAL,
-        )
+        inbound, latched = inbound_qos(depth), latched_qos()
         joining_group = MutuallyExclusiveCallbackGroup()
         output_group = MutuallyExclusiveCallbackGroup()
         self.create_subscription(Float64MultiArray, "local_map", self._on_local_map, inbound, callback_group=joining_group)

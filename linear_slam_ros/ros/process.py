@@ -19,15 +19,18 @@ def loopback_env(domain_id: int | None = None, base: Mapping[str, str] | None = 
     """Return an environment with DDS discovery confined to loopback and a ROS domain id set.
 
     Args:
-        domain_id: the ``ROS_DOMAIN_ID`` to use when ``base`` has none (default
-            :data:`DEFAULT_DOMAIN_ID`); one already set is kept, so a caller's choice wins.
+        domain_id: the ``ROS_DOMAIN_ID`` to use (a test run's own domain); ``None`` keeps one
+            already set, or sets :data:`DEFAULT_DOMAIN_ID`.
         base: the environment to start from (default this process's ``os.environ``), copied
             unchanged otherwise: ROS from PyPI wheels needs the parent's ``LD_LIBRARY_PATH``
             and bootstrap marker together in a child.
     """
     env = dict(os.environ if base is None else base)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    env.setdefault("ROS_DOMAIN_ID", str(DEFAULT_DOMAIN_ID if domain_id is None else domain_id))
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    else:
+        env.setdefault("ROS_DOMAIN_ID", str(DEFAULT_DOMAIN_ID))
     return env
 
 

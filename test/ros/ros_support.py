@@ -15,8 +15,8 @@ from linear_slam_ros.ros.process import loopback_env, stop_process  # imports no
 REPO = Path(__file__).resolve().parents[2]
 INSTALL_SETUP = REPO / "install" / "setup.bash"
 
-# DDS stays on loopback, in a domain of this test run (never the default 0) unless ROS_DOMAIN_ID
-# names one already.
+# DDS stays on loopback, in a domain of this test run (never the default 0, nor the domain of
+# `make run`): the tests never meet another run's nodes.
 os.environ.update(loopback_env(20 + os.getpid() % 70))
 
 from rclpy.serialization import deserialize_message  # noqa: E402  (after the environment is set)

@@ -7,8 +7,9 @@ import pytest
 
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
-from linear_slam_ros.joiner.joiner import Joiner, global_map_of
+from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.strategy import JoinMethod
+from support import global_map_of
 
 
 @pytest.fixture

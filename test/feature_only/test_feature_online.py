@@ -12,9 +12,10 @@ from linear_slam_ros.feature_only.conversion import to_feature_only
 from linear_slam_ros.feature_only.joining import join_features_dc, join_features_sequential
 from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
 from linear_slam_ros.feature_only.precondition import precondition
-from linear_slam_ros.joiner.joiner import Joiner, global_feature_map_of, global_map_of
+from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from support import global_feature_map_of, global_map_of
 
 
 def _maps(dim: int, n_poses: int = 24, seed: int = 31, steps: int = 3, sensor_range: float = 7.0):

@@ -7,7 +7,8 @@ import pytest
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import SolverError
-from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd, solve_spd
+from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd
+from support import solve_spd
 
 
 def _spd(n, rng):

@@ -7,8 +7,7 @@ import json
 import pytest
 
 from linear_slam_ros.cli.main import main
-from linear_slam_ros.io.datasets import read_rows
-from support import CACHE, dataset_archive
+from support import CACHE, dataset_archive, read_rows
 
 REPORT_KEYS = {
     "method", "n_submaps", "state_dim", "seconds", "per_submap_ms_p50", "per_submap_ms_p99",

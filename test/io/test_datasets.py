@@ -13,15 +13,13 @@ from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_pose_gr
 from linear_slam_ros.io.datasets import (
     MapKind,
     detect_kind,
-    format_local_map,
     parse_local_map_text,
     read_dataset,
-    read_rows,
     to_local_map,
-    write_dataset,
     write_features,
     write_poses,
 )
+from support import format_local_map, read_rows, write_dataset
 
 PF_TEXT = """0
 5

@@ -17,11 +17,12 @@ from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
 from linear_slam_ros.evaluation.benchmark import run_benchmark
 from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
 from linear_slam_ros.evaluation.objective import MapObjective, chi2
-from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join
+from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join, run_joiner
 from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, resolve_dataset_dir, write_poses
 from linear_slam_ros.io.results import write_map, write_report, write_result
 from linear_slam_ros.joiner.config import JoinerConfig
 from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
 from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps
 from linear_slam_ros.pose_graph.g2o import read_g2o
@@ -76,11 +77,21 @@ def cmd_refine(args: argparse.Namespace) -> int:
 def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     config = JoinerConfig.from_mapping({"mode": args.method, "map_type": args.map_type}, online=False)
     dataset = read_dataset(args.dataset, kind=args.kind)
+    run: JoinRun | None = None
+    origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
+    if args.initial_state is not None or args.save_state is not None:
+        initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
+        with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
+            run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update)
+        origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
+        if args.save_state is not None:
+            write_snapshot(args.save_state, saved)
+            logger.info("%s: joiner state written to %s", dataset.name, args.save_state)
     if config.map_type is MapType.FEATURE_ONLY:
-        return _join_feature_only(args, dataset, refine_too)
+        return _join_feature_only(args, dataset, refine_too, run)
     method = config.mode
-    run = join_dataset(dataset, method)
-    origin = dataset.maps[0].frame_id
+    if run is None:
+        run = join_dataset(dataset, method)
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin)
         report = report_for(run, dataset, chi2(in_origin, dataset.maps))
@@ -110,14 +121,14 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     return 0
 
 
-def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: bool) -> int:
+def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: bool, run: JoinRun | None) -> int:
     """Feature-only (D-SLAM) joining of a pose-feature dataset: precondition, marginalise, join."""
     if not dataset.kind.has_features:
         logger.error("%s is a pose-only dataset: feature-only joining needs features", dataset.name)
         return 2
-    run = run_feature_join(dataset.maps, args.method, refine_too)
-    report: dict[str, object] = {"dataset": dataset.name, "kind": dataset.kind.value, **run.report}
-    write_map(run.refined if run.refined is not None else run.joined, args.out, None)
+    feature_run = run_feature_join(dataset.maps, args.method, refine_too, run)
+    report: dict[str, object] = {"dataset": dataset.name, "kind": dataset.kind.value, **feature_run.report}
+    write_map(feature_run.refined if feature_run.refined is not None else feature_run.joined, args.out, None)
     write_report(args.out, report)
     logger.info("%s: feature-only %s joined %d maps (%d after preconditioning) in %.3f s, chi2 %.3f",
                 dataset.name, args.method, len(dataset.maps), report["n_feature_maps"], report["seconds"], report["chi2"])
@@ -183,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
             "--map-type", choices=[t.value for t in MapType], default=MapType.AS_IS.value,
             help="feature-only: marginalise poses and join feature-only (D-SLAM) maps in feature-defined frames",
         )
+        p.add_argument("--initial-state", type=Path, default=None,
+                       help="continue from a joiner state file (the node's ~/save_map or --save-state); "
+                            "the dataset's maps get the sequence numbers that follow it")
+        p.add_argument("--save-state", type=Path, default=None,
+                       help="write the joiner's exact state here (for --initial-state, or the node's initial_map)")
 
     p_join = sub.add_parser("join", help="join a dataset's local maps")
     common(p_join)

@@ -17,8 +17,9 @@ from linear_slam_ros.feature_only.conversion import to_feature_only
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.feature_only.precondition import precondition
 from linear_slam_ros.feature_only.refine import feature_residuals, feature_rmse, refine_features
+from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, global_result
 from linear_slam_ros.joiner.registry import get_strategy
-from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
 
 
 @dataclass(frozen=True)
@@ -75,6 +76,51 @@ def run_join(
     return JoinRun(strategy.method, result, seconds, tuple(steps), len(maps), strategy.run_step)
 
 
+def run_joiner(
+    maps: Sequence[LocalMap],
+    method: JoinMethod | str,
+    map_type: MapType | str = MapType.AS_IS,
+    initial: SavedJoiner | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[JoinRun, SavedJoiner]:
+    """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
+
+    The maps get the sequence numbers that follow the saved state's (1, 2, ... from scratch), so
+    the saved result can be continued by the node or by another run. Timing is per submap.
+
+    Returns:
+        The timed run and the joiner's final saved value (for ``--save-state``).
+
+    Raises:
+        InvalidMapError: ``maps`` is empty, or a map was rejected (the message lists the reasons).
+        ConfigError: ``initial`` was joined with another method or map type.
+    """
+    if not maps:
+        raise InvalidMapError("no local maps to join")
+    joiner = Joiner(JoinMethod(method), MapType(map_type))
+    reasons: list[str] = []
+    joiner.on_reject = lambda _reason, message: reasons.append(message)
+    if initial is not None:
+        joiner.restore(initial)
+    first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
+    strategy = joiner.state.strategy
+    tune_allocator()
+    with blas_threads(strategy.blas_threads):
+        start = time.perf_counter()
+        for i, m in enumerate(maps):
+            joiner.offer(m, first_seq + i)
+            if progress is not None:
+                progress(1)
+        result = global_result(joiner.state)
+        seconds = time.perf_counter() - start
+    if reasons:
+        raise InvalidMapError(f"{len(reasons)} local map(s) rejected: " + "; ".join(reasons[:3]))
+    if result is None:
+        raise InvalidMapError(f"no joined map: the {len(maps)} local maps gave none")
+    run = JoinRun(strategy.method, result, seconds, tuple(joiner.join_seconds), len(maps), PER_SUBMAP)
+    return run, joiner.save()
+
+
 @dataclass(frozen=True)
 class FeatureRun:
     """A timed feature-only joining run of pose-feature local maps (CLI and benchmark).
@@ -91,13 +137,17 @@ class FeatureRun:
     report: dict[str, Any]
 
 
-def run_feature_join(maps: Sequence[LocalMap], method: JoinMethod | str, refine_too: bool = False) -> FeatureRun:
+def run_feature_join(
+    maps: Sequence[LocalMap], method: JoinMethod | str, refine_too: bool = False, run: JoinRun | None = None
+) -> FeatureRun:
     """Precondition, marginalise and join pose-feature maps as feature-only maps, timed, with figures.
 
     ``online-dc`` times each submap; ``sequential`` and ``dc`` convert every group first and
-    time each pairwise join.
+    time each pairwise join. ``run``: a feature-only run of ``maps`` already made (e.g. by
+    :func:`run_joiner` from a saved state), to report on instead.
     """
-    run = run_join(maps, method, MapType.FEATURE_ONLY)
+    if run is None:
+        run = run_join(maps, method, MapType.FEATURE_ONLY)
     joined: FeatureMap = run.result
     feature_maps = [to_feature_only(g) for g in precondition(maps)]  # for the objective (not timed)
     residual, _ = feature_residuals(joined, joined.x, feature_maps, jacobian=False)

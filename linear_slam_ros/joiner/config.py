@@ -76,7 +76,21 @@ class JoinerConfig:
         1500, "largest global state (scalars) for which feature covariance ellipses are drawn", bounds=(0, 1_000_000),
     )
     summary_period: float = _param(5.0, "seconds between info-level summary lines and /diagnostics", bounds=(0.1, 3600.0))
-    save_directory: str = _param("saved_map", "folder where ~/save_map writes poses.txt, features.txt and a bag")
+    save_directory: str = _param(
+        "saved_map", "folder where ~/save_map writes poses.txt, features.txt, a bag and the exact state (state.npz)",
+    )
+    state_dir: str = _param(
+        "", "folder of the journal and snapshots that survive a crash (resumed at start-up); empty: no persistence",
+        read_only=True,
+    )
+    snapshot_period: int = _param(
+        1000, "joined submaps between snapshots of the exact state in state_dir", bounds=(1, 1_000_000),
+    )
+    load_path: str = _param("", "state file (state.npz) that ~/load_map loads")
+    initial_map: str = _param(
+        "", "state file loaded at start-up, to continue mapping on it (ignored when state_dir holds a state)",
+        read_only=True,
+    )
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], online: bool = True) -> JoinerConfig:

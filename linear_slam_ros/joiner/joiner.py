@@ -14,7 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.joiner.config import OutputFrame
@@ -83,21 +83,43 @@ def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFr
     return strategy.express(result, state.first_pose_id)
 
 
+@dataclass(frozen=True)
+class SavedJoiner:
+    """Everything a :class:`Joiner` needs to carry on exactly where it was (see :meth:`Joiner.save`).
+
+    Attributes:
+        state: the joiner state (map, sequence position, counts).
+        rejected: ``(reason, count)`` of the rejections so far.
+        pending: ``(seq, submap)`` of the early submaps waiting in the reorder buffer.
+        n_skipped: submaps skipped because their sequence number was already handled.
+        journal_records: how many records of the node's journal this value includes (0 offline).
+    """
+
+    state: JoinerState
+    rejected: tuple[tuple[str, int], ...] = ()
+    pending: tuple[tuple[int, LocalMap], ...] = ()
+    n_skipped: int = 0
+    journal_records: int = 0
+
+
 @dataclass
 class Joiner:
     """Sequencing and bookkeeping around :func:`join_step` (mutable; owned by one thread).
 
-    Submaps are joined in sequence-number order. A duplicate or late sequence number is
-    rejected; an early one waits in a reorder buffer until the gap fills, or until the buffer
-    holds ``reorder_window`` submaps, when the gap is skipped with a warning.
+    Submaps are joined in sequence-number order. A sequence number already handled (joined,
+    rejected or skipped: a front-end or a replayed bag sending it again) is skipped with a debug
+    line and counted in :attr:`n_skipped`, not as a rejection; an early one waits in a reorder
+    buffer until the gap fills, or until the buffer holds ``reorder_window`` submaps, when the
+    gap is skipped with a warning.
 
     Attributes:
         mode: joining method.
         map_type: ``as-is`` or ``feature-only``.
         reorder_window: how many early submaps may wait for a missing one.
-        state: the current state (replace it to restore a saved one).
+        state: the current state (:meth:`restore` a saved one).
         rejected: count of rejected submaps by reason.
         join_seconds: wall time of each successful join.
+        n_skipped: submaps skipped as already handled.
     """
 
     mode: JoinMethod
@@ -107,6 +129,7 @@ class Joiner:
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
+    n_skipped: int = 0
     _pending: dict[int, LocalMap] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -118,6 +141,32 @@ class Joiner:
         self.rejected.clear()
         self.join_seconds.clear()
         self._pending.clear()
+        self.n_skipped = 0
+
+    def save(self, journal_records: int = 0) -> SavedJoiner:
+        """Return the joiner's state, counts and reorder buffer as one immutable value."""
+        return SavedJoiner(
+            self.state, tuple(sorted(self.rejected.items())), tuple(sorted(self._pending.items())), self.n_skipped,
+            journal_records,
+        )
+
+    def restore(self, saved: SavedJoiner) -> None:
+        """Carry on from a saved value (its method and map type replace this joiner's; latency figures restart).
+
+        Raises:
+            ConfigError: the saved state's strategy differs from this joiner's.
+        """
+        if (saved.state.method, saved.state.map_type) != (self.state.method, self.state.map_type):
+            raise ConfigError(
+                f"the saved map was joined with mode={saved.state.method.value!r}, map_type="
+                f"{saved.state.map_type.value!r}; this joiner runs mode={self.state.method.value!r}, "
+                f"map_type={self.state.map_type.value!r}"
+            )
+        self.state = saved.state
+        self.rejected = collections.Counter(dict(saved.rejected))
+        self._pending = dict(saved.pending)
+        self.n_skipped = saved.n_skipped
+        self.join_seconds.clear()
 
     @property
     def n_rejected(self) -> int:
@@ -130,6 +179,11 @@ class Joiner:
         if self.on_reject is not None:
             self.on_reject(reason, message)
 
+    def already_handled(self, seq: int) -> bool:
+        """Return whether :meth:`offer` would skip ``seq`` as already handled (joined, rejected, skipped or waiting)."""
+        expected = self.state.next_seq
+        return expected is not None and seq < expected or seq in self._pending
+
     def offer(self, submap: LocalMap, seq: int) -> list[int]:
         """Take a decoded submap; join it (and any buffered successors) when its turn comes.
 
@@ -137,9 +191,9 @@ class Joiner:
             Sequence numbers joined by this call, in order.
         """
         expected = self.state.next_seq
-        if expected is not None and seq < expected or seq in self._pending:
-            handled = expected - 1 if expected else seq
-            self.reject("duplicate_or_late", f"submap seq {seq} arrived after seq {handled} was handled: dropped")
+        if self.already_handled(seq):
+            self.n_skipped += 1
+            logger.debug("submap seq %d was already handled (next expected: %s): skipped", seq, expected)
             return []
         if expected is not None and seq > expected:
             self._pending[seq] = submap

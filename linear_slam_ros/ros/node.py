@@ -23,17 +23,22 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from linear_slam_ros.core.errors import ConfigError, LinearSlamError
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageError
+from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import set_blas_threads, tune_allocator
 from linear_slam_ros.io.results import write_map
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
-from linear_slam_ros.joiner.joiner import Joiner, JoinerState, global_result
+from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, global_result
 from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+from linear_slam_ros.ros.journal import JournalError
+from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.qos import inbound_qos, latched_qos
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_global
@@ -80,12 +85,24 @@ class JoinerNode(Node):
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
         self._next_publish = 0.0
 
+        self.store = StateStore(Path(config.state_dir)) if config.state_dir else None
+        self._journal_records = 0  # journal records the joiner state includes
+        self._snapshot_records = -1  # journal records of the newest snapshot
+        self._snapshot_joined = 0  # submaps joined in the newest snapshot
+        self._persist_seconds = {"journal": 0.0, "snapshot": 0.0, "restore": 0.0}
+        self._journal_lock = threading.Lock()  # the journal is appended from the joining thread, synced from the output one
+        self._start_state()
+
         depth = config.queue_depth
         inbound, latched = inbound_qos(depth), latched_qos()
         joining_group = MutuallyExclusiveCallbackGroup()
         output_group = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(Float64MultiArray, "local_map", self._on_local_map, inbound, callback_group=joining_group)
-        self.create_subscription(Float64MultiArray, "pose_graph", self._on_pose_graph, inbound, callback_group=joining_group)
+        self.create_subscription(
+            Float64MultiArray, "local_map", self._on_local_map, inbound, callback_group=joining_group, raw=True
+        )
+        self.create_subscription(
+            Float64MultiArray, "pose_graph", self._on_pose_graph, inbound, callback_group=joining_group, raw=True
+        )
         self.pub_global = self.create_publisher(Float64MultiArray, "global_map", latched)
         self.pub_path = self.create_publisher(PathMsg, "path", latched)
         self.pub_markers = self.create_publisher(MarkerArray, "features", latched)
@@ -93,6 +110,9 @@ class JoinerNode(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=joining_group)
         self.create_service(Trigger, "~/save_map", self._on_save_map, callback_group=output_group)
+        self.create_service(Trigger, "~/load_map", self._on_load_map, callback_group=output_group)
+        if self.store is not None:
+            self.create_timer(0.25, self._on_snapshot_timer, callback_group=output_group)
         self._timer = self.create_timer(1.0 / config.publish_rate, self._on_publish_timer, callback_group=output_group)
         self.create_timer(config.summary_period, self._on_summary_timer, callback_group=output_group)
         self.get_logger().info(
@@ -123,28 +143,48 @@ class JoinerNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
-    def _on_local_map(self, msg: Float64MultiArray) -> None:
+    def _on_local_map(self, raw: bytes) -> None:
+        self._receive("local_map", raw)
+
+    def _on_pose_graph(self, raw: bytes) -> None:
+        self._receive("pose_graph", raw)
+
+    def _receive(self, topic: str, raw: bytes) -> None:
+        """Decode an inbound message, journal it (with ``state_dir``), then offer it to the joiner."""
         self.n_received += 1
         try:
-            decoded = decode_map(*parts(msg))
+            submap, seq = _decode(topic, raw)
         except LinearSlamError as exc:
-            self.joiner.reject("bad_message", f"local_map rejected: {exc}")
+            self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
-        self._offer(decoded.local_map, decoded.seq)
+        self._offer(submap, seq, journal=(topic, raw))
 
-    def _on_pose_graph(self, msg: Float64MultiArray) -> None:
-        self.n_received += 1
+    def _replay(self, topic: str, raw: bytes) -> None:
+        """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
         try:
-            decoded = decode_chunk(*parts(msg))
-            submap = chunk_to_local_map(decoded.graph)
-        except LinearSlamError as exc:
-            self.joiner.reject("bad_message", f"pose_graph rejected: {exc}")
+            submap, seq = _decode(topic, raw)
+        except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
+            self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
+            self._journal_records += 1
             return
-        self._offer(submap, decoded.seq)
+        self._offer(submap, seq, self._journal_records)
 
-    def _offer(self, submap: Any, seq: int) -> None:
+    def _offer(self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None) -> None:
+        """Offer a submap to the joiner; with ``journal``, append its message to the journal first.
+
+        Both happen under the joining lock, so a snapshot always pairs a state with the number of
+        journal records it includes. A message the joiner will skip (sequence number already
+        handled) is not journaled: replaying it would add nothing.
+        """
         with self._lock:
+            if journal is not None and self.store is not None and not self.joiner.already_handled(seq):
+                t0 = time.perf_counter()
+                with self._journal_lock:
+                    record = self.store.journal.append(journal[0], journal[1], self.get_clock().now().nanoseconds)
+                self._persist_seconds["journal"] += time.perf_counter() - t0
             joined = self.joiner.offer(submap, seq)
+            if record is not None:
+                self._journal_records = record + 1
             if joined:
                 self._version += 1
         for s in joined:
@@ -160,6 +200,7 @@ class JoinerNode(Node):
             self.joiner.reset()
             self.n_received = 0
             self._version += 1
+        self._snapshot()  # a resume must not bring the cleared map back
         response.success, response.message = True, "global map cleared"
         self.get_logger().info("global map reset")
         return response
@@ -167,6 +208,7 @@ class JoinerNode(Node):
     def _on_save_map(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
             state = self.joiner.state
+            saved = self.joiner.save()
         folder = Path(self.config.save_directory)
         try:
             joined = global_result(state, OutputFrame.FIRST_POSE)
@@ -178,11 +220,106 @@ class JoinerNode(Node):
 
             encoded = self._encode(joined, state, self.joiner.stats())
             write_messages(folder / "global_map_bag", [("global_map", 0, encoded)], latched={"global_map"}, overwrite=True)
+            write_snapshot(folder / "state.npz", saved)
         except (LinearSlamError, OSError) as exc:
             response.success, response.message = False, f"save failed: {exc}"
             return response
         response.success, response.message = True, f"saved {state.n_joined} submaps to {folder}"
         return response
+
+    def _on_load_map(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        path = Path(self.config.load_path)
+        if not self.config.load_path:
+            response.success, response.message = False, "parameter load_path is empty: set it to a state file (state.npz)"
+            return response
+        try:
+            self._load(path)
+        except (LinearSlamError, OSError) as exc:
+            response.success, response.message = False, f"load failed: {exc}"
+            return response
+        self._next_publish = 0.0
+        self._on_publish_timer()  # the loaded map, at once
+        response.success, response.message = True, f"loaded {self.joiner.state.n_joined} submaps from {path}"
+        return response
+
+    # ------------------------------------------------------------------ persistence
+
+    def _start_state(self) -> None:
+        """Resume from ``state_dir``, or load ``initial_map``; then open the journal.
+
+        Raises:
+            SnapshotError: ``initial_map`` cannot be read (names the file and the problem).
+            ConfigError: the saved state was joined with another mode or map type.
+        """
+        config = self.config
+        t0 = time.perf_counter()
+        if self.store is not None and self.store.has_state():
+            recovery = self.store.recover(self.joiner, self._replay)
+            self._journal_records = recovery.snapshot_records + recovery.replayed
+            self.get_logger().info(
+                f"resumed from {recovery.snapshot or 'an empty map'} and {recovery.replayed} journal record(s) in "
+                f"{recovery.seconds:.2f} s: {self.joiner.state.n_joined} submaps joined"
+                + (f"; {len(recovery.problems)} problem(s), see the warnings" if recovery.problems else "")
+            )
+            for line in recovery.problems:
+                self.get_logger().warning(line)
+            if config.initial_map:
+                self.get_logger().warning(f"initial_map {config.initial_map} ignored: state_dir {config.state_dir} holds a state")
+        elif config.initial_map:
+            self._load(Path(config.initial_map), snapshot=False)
+        self._persist_seconds["restore"] = time.perf_counter() - t0
+        if self.store is not None:
+            self.store.open_journal()
+            self._snapshot()
+
+    def _load(self, path: Path, snapshot: bool = True) -> None:
+        """Replace the joiner state by a saved one (``~/save_map``'s ``state.npz`` or ``--save-state``)."""
+        saved = read_snapshot(path)
+        if not isinstance(saved, SavedJoiner):
+            raise SnapshotError(f"state file {path} holds no joiner state")
+        with self._lock:
+            self.joiner.restore(dataclasses.replace(saved, journal_records=self._journal_records))
+            self._version += 1
+        self.get_logger().info(f"loaded {self.joiner.state.n_joined} submaps from {path}")
+        if snapshot:
+            self._snapshot()
+
+    def _snapshot(self) -> None:
+        """Write a snapshot of the current state (with ``state_dir``), outside the joining lock."""
+        if self.store is None:
+            return
+        with self._lock:
+            saved = self.joiner.save(self._journal_records)
+        t0 = time.perf_counter()
+        try:
+            with self._journal_lock:
+                self.store.journal.flush(fsync=True)  # the snapshot never includes records the disk lacks
+            self.store.write_snapshot(saved)
+        except LinearSlamError as exc:
+            self.get_logger().error(f"snapshot failed (the journal still holds every submap): {exc}")
+            return
+        self._persist_seconds["snapshot"] += time.perf_counter() - t0
+        self._snapshot_records = saved.journal_records
+        self._snapshot_joined = saved.state.n_joined
+
+    def _on_snapshot_timer(self) -> None:
+        if self.store is None:
+            return
+        with self._journal_lock:
+            self.store.journal.maybe_sync()  # a journal that falls quiet gets its last records synced too
+        with self._lock:
+            due = self.joiner.state.n_joined - self._snapshot_joined >= self.config.snapshot_period
+        if due:
+            self._snapshot()
+
+    def destroy_node(self) -> None:
+        """Snapshot and close the journal (clean shutdown), then destroy the node."""
+        if self.store is not None:
+            self._snapshot()
+            with self._journal_lock:
+                self.store.close()
+            self.store = None
+        super().destroy_node()
 
     # ------------------------------------------------------------------ outputs
 
@@ -238,7 +375,28 @@ class JoinerNode(Node):
             status.level, status.message = DiagnosticStatus.WARN, f"{int(stats['n_rejected'])} submaps rejected"
         status.values = [KeyValue(key=k, value=f"{v:g}") for k, v in stats.items()]
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))
+        status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
+        for what, seconds in self._persist_seconds.items():
+            status.values.append(KeyValue(key=f"{what}_seconds_total", value=f"{seconds:g}"))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
+
+
+def _decode(topic: str, raw: bytes) -> tuple[LocalMap, int]:
+    """Decode the raw CDR of a ``local_map`` or ``pose_graph`` message into a local map and its sequence number.
+
+    Raises:
+        MessageError: the bytes are not a Float64MultiArray, or it does not follow the layout.
+        LinearSlamError: the map or pose graph it carries is invalid.
+    """
+    try:
+        msg = deserialize_message(raw, Float64MultiArray)
+    except Exception as exc:  # rclpy raises plain exceptions for bad CDR
+        raise MessageError(f"not a serialized std_msgs/Float64MultiArray ({type(exc).__name__}: {exc})") from None
+    if topic == "pose_graph":
+        chunk = decode_chunk(*parts(msg))
+        return chunk_to_local_map(chunk.graph), chunk.seq
+    decoded = decode_map(*parts(msg))
+    return decoded.local_map, decoded.seq
 
 
 def status_header(node: Node) -> Any:
@@ -257,8 +415,8 @@ def main(args: list[str] | None = None) -> None:
         executor = MultiThreadedExecutor(num_threads=2)
         executor.add_node(node)
         executor.spin()
-    except ConfigError as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"invalid configuration: {exc}")
+    except (ConfigError, SnapshotError, JournalError) as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         sys.exit(2)
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -14,6 +14,7 @@ from linear_slam_ros.ros.process import loopback_env, stop_process  # imports no
 
 REPO = Path(__file__).resolve().parents[2]
 INSTALL_SETUP = REPO / "install" / "setup.bash"
+DATASETS = REPO.parent / "shared" / "datasets"
 
 # DDS stays on loopback, in a domain of this test run (never the default 0, nor the domain of
 # `make run`): the tests never meet another run's nodes.
@@ -27,6 +28,16 @@ from linear_slam_ros.ros.player import play  # noqa: E402
 from linear_slam_ros.ros.spin import LatestMessage  # noqa: E402
 from msg_adapters import decode_map  # noqa: E402
 from msg_adapters.ros import parts  # noqa: E402
+
+
+def dataset_bag(name: str) -> Path:
+    """Return ``bags/<name>``, made from the benchmark dataset (10 Hz stamps) when it is not there yet."""
+    from linear_slam_ros.ros.bag_from_dataset import make_bag
+
+    bag = REPO / "bags" / name
+    if not (bag / "metadata.yaml").exists():
+        make_bag(DATASETS / f"{name}.tar.xz", bag, rate_hz=10.0)
+    return bag
 
 
 def sourced(command: str) -> list[str]:

@@ -1,0 +1,161 @@
+"""The node's state directory: a journal of inbound messages and exact snapshots, and recovery from them.
+
+Layout of ``state_dir``::
+
+    journal/                  rosbag2 bag (MCAP): every accepted local_map / pose_graph message, raw
+    snapshots/state_<n>.npz   exact joiner state including the first n journal records (two kept)
+
+Recovery (:meth:`StateStore.recover`): the newest snapshot that reads back intact is restored
+(a truncated one, one that fails its checksum or one of another format version is reported and
+the next older one tried; with none, the joiner starts empty), then the journal records after it
+are replayed through the joiner. The journal is the source of truth: a snapshot only saves
+replay time, so no problem with a snapshot can lose a submap, and a corrupt snapshot is never
+used. A truncated journal tail (a kill while a record was being written) is reported and
+dropped: that message was never joined.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner
+from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
+from linear_slam_ros.ros.journal import Journal, read_journal
+
+logger = logging.getLogger(__name__)
+
+SNAPSHOTS_KEPT = 2
+"""Snapshots kept in ``snapshots/``: the newest, and one to fall back to."""
+_SNAPSHOT_NAME = re.compile(r"^state_(\d+)\.npz$")
+
+Offer = Callable[[str, bytes], None]
+"""``(topic, raw CDR bytes) -> None``: decode one journaled message and offer it to the joiner."""
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """What :meth:`StateStore.recover` found and did.
+
+    Attributes:
+        snapshot: the snapshot restored (``None``: none was usable, or there was none).
+        snapshot_records: journal records the restored snapshot included.
+        replayed: journal records replayed after it.
+        problems: every problem found (a corrupt snapshot, a truncated journal), one line each.
+        seconds: wall time of the recovery, s.
+    """
+
+    snapshot: Path | None
+    snapshot_records: int
+    replayed: int
+    problems: tuple[str, ...]
+    seconds: float
+
+
+class StateStore:
+    """A node's state directory: journal appends, periodic snapshots, recovery.
+
+    Not thread-safe by itself: the node appends from its joining thread and snapshots from its
+    output thread, each call on its own file.
+    """
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = Path(folder)
+        self.journal_dir = self.folder / "journal"
+        self.snapshot_dir = self.folder / "snapshots"
+        self._journal: Journal | None = None
+
+    def has_state(self) -> bool:
+        """Return whether the folder holds a journal or a snapshot."""
+        return (self.journal_dir / "metadata.yaml").exists() or bool(self.snapshots())
+
+    def snapshots(self) -> list[tuple[int, Path]]:
+        """Return ``(journal records, path)`` of the snapshots, newest first."""
+        if not self.snapshot_dir.is_dir():
+            return []
+        found = []
+        for p in self.snapshot_dir.iterdir():
+            m = _SNAPSHOT_NAME.match(p.name)
+            if m:
+                found.append((int(m.group(1)), p))
+        return sorted(found, reverse=True)
+
+    def recover(self, joiner: Joiner, offer: Offer) -> Recovery:
+        """Restore the newest good snapshot into ``joiner``, then replay the journal after it through ``offer``.
+
+        Raises:
+            JournalError: the journal folder exists but is not a journal.
+            ConfigError: the snapshot was joined with another mode or map type (refuse to start:
+                point ``state_dir`` elsewhere or use the same mode).
+        """
+        t0 = time.perf_counter()
+        problems: list[str] = []
+        restored: Path | None = None
+        records_in_snapshot = 0
+        for _, path in self.snapshots():
+            try:
+                saved = read_snapshot(path)
+            except SnapshotError as exc:
+                problems.append(f"{exc}: falling back to an older point")
+                continue
+            if not isinstance(saved, SavedJoiner):
+                problems.append(f"state file {path} holds no joiner state: falling back to an older point")
+                continue
+            joiner.restore(saved)
+            restored, records_in_snapshot = path, saved.journal_records
+            break
+        replayed = 0
+        if self.journal_dir.exists():
+            contents = read_journal(self.journal_dir)
+            problems.extend(contents.problems)
+            if len(contents.records) < records_in_snapshot:
+                problems.append(
+                    f"journal {self.journal_dir} holds {len(contents.records)} records, snapshot {restored} "
+                    f"includes {records_in_snapshot}: the journal lost records the snapshot still holds"
+                )
+            for record in contents.after(records_in_snapshot):
+                offer(record.topic, record.raw)
+                replayed += 1
+        for line in problems:
+            logger.warning("%s", line)
+        return Recovery(restored, records_in_snapshot, replayed, tuple(problems), time.perf_counter() - t0)
+
+    def open_journal(self) -> Journal:
+        """Open the journal for appending (a new storage file of the same bag)."""
+        if self._journal is None:
+            self._journal = Journal.open(self.journal_dir)
+        return self._journal
+
+    @property
+    def journal(self) -> Journal:
+        """The open journal.
+
+        Raises:
+            LinearSlamError: :meth:`open_journal` was not called.
+        """
+        if self._journal is None:
+            raise LinearSlamError(f"journal of {self.folder} is not open")
+        return self._journal
+
+    def write_snapshot(self, saved: SavedJoiner) -> Path:
+        """Write a snapshot (atomically) and delete all but the :data:`SNAPSHOTS_KEPT` newest.
+
+        Raises:
+            SnapshotError: the snapshot cannot be written (names the file).
+        """
+        path = self.snapshot_dir / f"state_{saved.journal_records}.npz"
+        write_snapshot(path, saved)
+        for _, old in self.snapshots()[SNAPSHOTS_KEPT:]:
+            old.unlink(missing_ok=True)
+        return path
+
+    def close(self) -> None:
+        """Flush and close the journal (fsync)."""
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None

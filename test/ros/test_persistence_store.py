@@ -1,0 +1,114 @@
+"""The state directory without DDS: recovery from snapshot + journal, and every fallback it takes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joiner.joiner import Joiner, global_result
+from linear_slam_ros.ros.persistence import SNAPSHOTS_KEPT, StateStore
+from msg_adapters import decode_map, encode_map
+from msg_adapters.bags import bag_parts, deserialize, serialize
+
+
+@pytest.fixture(scope="module")
+def messages():
+    world = make_world(2, 40, 30, np.random.default_rng(7))
+    maps = noisy_local_maps(world, np.random.default_rng(8), steps_per_map=3, sensor_range=7.0)
+    return [serialize(encode_map(m, seq)) for seq, m in enumerate(maps, start=1)]
+
+
+def _offer_to(joiner):
+    def offer(topic: str, raw: bytes) -> None:
+        decoded = decode_map(*bag_parts(deserialize(raw)))
+        joiner.offer(decoded.local_map, decoded.seq)
+
+    return offer
+
+
+def _session(folder, messages, snapshot_every, mode="online-dc"):
+    """What the node does: journal each message, offer it, snapshot every ``snapshot_every``; no clean close."""
+    store = StateStore(folder)
+    joiner = Joiner(mode)
+    store.recover(joiner, _offer_to(joiner))
+    journal = store.open_journal()
+    offer = _offer_to(joiner)
+    for raw in messages:
+        index = journal.append("local_map", raw, 0)
+        offer("local_map", raw)
+        if (index + 1) % snapshot_every == 0:
+            journal.flush(fsync=True)
+            store.write_snapshot(joiner.save(index + 1))
+    journal.flush(fsync=False)  # a kill -9 here: no close, no final snapshot
+    return joiner
+
+
+def _reference(messages, mode="online-dc"):
+    joiner = Joiner(mode)
+    offer = _offer_to(joiner)
+    for raw in messages:
+        offer("local_map", raw)
+    return joiner
+
+
+def test_recovery_restores_the_newest_snapshot_and_replays_the_rest(messages, tmp_path):
+    _session(tmp_path, messages[:7], snapshot_every=3)
+    store = StateStore(tmp_path)
+    assert [n for n, _ in store.snapshots()] == [6, 3]  # two kept, newest first
+    assert len(store.snapshots()) == SNAPSHOTS_KEPT
+    joiner = Joiner("online-dc")
+    recovery = store.recover(joiner, _offer_to(joiner))
+    assert recovery.snapshot is not None and recovery.snapshot.name == "state_6.npz"
+    assert (recovery.snapshot_records, recovery.replayed, recovery.problems) == (6, 1, ())
+    for raw in messages:  # the whole stream again, as a replayed bag: 7 skipped, the rest joined
+        _offer_to(joiner)("local_map", raw)
+    reference = _reference(messages)
+    assert joiner.n_skipped == 7 and joiner.n_rejected == 0
+    assert global_result(joiner.state).x.tobytes() == global_result(reference.state).x.tobytes()
+
+
+def test_a_corrupt_newest_snapshot_falls_back_to_the_older_one(messages, tmp_path):
+    _session(tmp_path, messages[:7], snapshot_every=3)
+    newest = tmp_path / "snapshots" / "state_6.npz"
+    newest.write_bytes(newest.read_bytes()[:-100])
+    joiner = Joiner("online-dc")
+    recovery = StateStore(tmp_path).recover(joiner, _offer_to(joiner))
+    assert recovery.snapshot.name == "state_3.npz" and recovery.replayed == 4
+    assert any("state_6.npz" in p and "falling back to an older point" in p for p in recovery.problems)
+    assert joiner.state.n_joined == 7
+
+
+def test_no_usable_snapshot_replays_the_whole_journal(messages, tmp_path):
+    _session(tmp_path, messages[:5], snapshot_every=2)
+    for _, path in StateStore(tmp_path).snapshots():
+        path.write_bytes(b"garbage")
+    joiner = Joiner("online-dc")
+    recovery = StateStore(tmp_path).recover(joiner, _offer_to(joiner))
+    assert recovery.snapshot is None and recovery.replayed == 5 and len(recovery.problems) == 2
+    assert global_result(joiner.state).x.tobytes() == global_result(_reference(messages[:5]).state).x.tobytes()
+
+
+def test_a_truncated_journal_tail_is_reported_and_dropped(messages, tmp_path):
+    _session(tmp_path, messages[:4], snapshot_every=100)
+    journal_file = next((tmp_path / "journal").glob("journal_*.mcap"))
+    journal_file.write_bytes(journal_file.read_bytes()[:-5])  # inside the last record
+    joiner = Joiner("online-dc")
+    recovery = StateStore(tmp_path).recover(joiner, _offer_to(joiner))
+    assert recovery.replayed == 3 and any("journal_0.mcap" in p for p in recovery.problems)
+    assert joiner.state.n_joined == 3
+
+
+def test_sessions_append_and_the_journal_stays_one_bag(messages, tmp_path):
+    _session(tmp_path, messages[:3], snapshot_every=100)
+    joiner = _session(tmp_path, messages, snapshot_every=100)  # resumes, then gets the whole stream again
+    assert joiner.state.n_joined == len(messages) and joiner.n_skipped == 3
+    assert sorted(p.name for p in (tmp_path / "journal").glob("*.mcap")) == ["journal_0.mcap", "journal_1.mcap"]
+
+
+def test_a_snapshot_of_another_mode_refuses_to_start(messages, tmp_path):
+    _session(tmp_path, messages[:3], snapshot_every=3, mode="sequential")
+    joiner = Joiner("online-dc")
+    with pytest.raises(ConfigError, match="the saved map was joined with mode='sequential'"):
+        StateStore(tmp_path).recover(joiner, _offer_to(joiner))

@@ -29,3 +29,22 @@ def _circle_graph(rng, n=60, loops=3.0, per_loop=20, sigma=(0.0, 0.0)) -> tuple[
 def circle_graph():
     """Return the builder ``circle_graph(rng, n=60, loops=3.0, per_loop=20, sigma=(0, 0)) -> (world, graph)``."""
     return _circle_graph
+
+
+@pytest.fixture
+def make_chunk():
+    """Return ``make_chunk(**fields)``: a star chunk of two edges from pose 3, with fields overridden."""
+
+    def make(**over):
+        kw = dict(
+            from_ids=np.array([3, 3]),
+            to_ids=np.array([4, 7]),
+            measurements=np.array([[1.0, 0, 0.1], [2.0, 1, -0.2]]),
+            information=np.stack([np.eye(3), 2 * np.eye(3)]),
+            dim=2,
+            name="pose-graph chunk 1",
+        )
+        kw.update(over)
+        return PoseGraph.from_edges(**kw)
+
+    return make

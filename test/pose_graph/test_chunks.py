@@ -17,21 +17,8 @@ from linear_slam_ros.pose_graph.chunks import (
 from linear_slam_ros.pose_graph.graph import PoseGraph
 
 
-def _chunk(**over):
-    kw = dict(
-        from_ids=np.array([3, 3]),
-        to_ids=np.array([4, 7]),
-        measurements=np.array([[1.0, 0, 0.1], [2.0, 1, -0.2]]),
-        information=np.stack([np.eye(3), 2 * np.eye(3)]),
-        dim=2,
-        name="pose-graph chunk 1",
-    )
-    kw.update(over)
-    return PoseGraph.from_edges(**kw)
-
-
-def test_star_chunk_is_a_pose_only_local_map():
-    m = star_chunk_to_local_map(_chunk())
+def test_star_chunk_is_a_pose_only_local_map(make_chunk):
+    m = star_chunk_to_local_map(make_chunk())
     assert m.frame_id == 3 and m.end_id == 4
     np.testing.assert_array_equal(m.ids, [4, 7])
     np.testing.assert_array_equal(m.x, [1.0, 0, 0.1, 2.0, 1, -0.2])
@@ -39,14 +26,14 @@ def test_star_chunk_is_a_pose_only_local_map():
     assert m.name == "pose-graph chunk 1"
 
 
-def test_parallel_edges_are_fused():
-    m = chunk_to_local_map(_chunk(to_ids=np.array([4, 4]), measurements=np.array([[1.0, 0, 0.1], [1.3, 0, 0.1]])))
+def test_parallel_edges_are_fused(make_chunk):
+    m = chunk_to_local_map(make_chunk(to_ids=np.array([4, 4]), measurements=np.array([[1.0, 0, 0.1], [1.3, 0, 0.1]])))
     np.testing.assert_array_equal(m.ids, [4])
     np.testing.assert_allclose(m.x, [1.2, 0, 0.1])
 
 
-def test_non_star_chunk_needs_lago():
-    chunk = _chunk(from_ids=np.array([3, 4]))
+def test_non_star_chunk_needs_lago(make_chunk):
+    chunk = make_chunk(from_ids=np.array([3, 4]))
     with pytest.raises(GraphError, match="pose-graph chunk 1 is not a star"):
         star_chunk_to_local_map(chunk)
 

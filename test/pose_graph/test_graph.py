@@ -9,19 +9,6 @@ from linear_slam_ros.core.errors import GraphError
 from linear_slam_ros.pose_graph.graph import PoseGraph
 
 
-def _chunk(**over):
-    kw = dict(
-        from_ids=np.array([3, 3]),
-        to_ids=np.array([4, 7]),
-        measurements=np.array([[1.0, 0, 0.1], [2.0, 1, -0.2]]),
-        information=np.stack([np.eye(3), 2 * np.eye(3)]),
-        dim=2,
-        name="pose-graph chunk 1",
-    )
-    kw.update(over)
-    return PoseGraph.from_edges(**kw)
-
-
 @pytest.mark.parametrize(
     "over, match",
     [
@@ -36,23 +23,23 @@ def _chunk(**over):
         (dict(pose_ids=[3, 4]), "edge 1 \\(3 -> 7\\) names unknown pose 7"),
     ],
 )
-def test_chunk_validation(over, match):
+def test_chunk_validation(over, match, make_chunk):
     with pytest.raises(GraphError, match=f"pose-graph chunk 1: {match}"):
-        _chunk(**over)
+        make_chunk(**over)
 
 
-def test_empty_graph_and_the_constructor_are_validated_too():
+def test_empty_graph_and_the_constructor_are_validated_too(make_chunk):
     with pytest.raises(GraphError, match="^pose-graph chunk 1 has no edges$"):
-        _chunk(from_ids=[], to_ids=[], measurements=np.zeros((0, 3)), information=np.zeros((0, 3, 3)))
-    good = _chunk()
+        make_chunk(from_ids=[], to_ids=[], measurements=np.zeros((0, 3)), information=np.zeros((0, 3, 3)))
+    good = make_chunk()
     with pytest.raises(GraphError, match="^pose graph: pose_ids must be sorted and unique$"):
         PoseGraph(2, good.from_ids, good.to_ids, good.measurements, good.information, np.array([7, 4, 3]))
     with pytest.raises(GraphError, match=r"^pose graph: edge 0 \(3 -> 4\) names unknown pose 3 \(and 1 more\)$"):
         PoseGraph(2, good.from_ids, good.to_ids, good.measurements, good.information, np.array([7]))
 
 
-def test_from_edges_types_dimension_and_poses():
-    g = _chunk(from_ids=[3, 4], to_ids=[4, 7], pose_ids=[9, 7, 3, 4, 3], dim=None)
+def test_from_edges_types_dimension_and_poses(make_chunk):
+    g = make_chunk(from_ids=[3, 4], to_ids=[4, 7], pose_ids=[9, 7, 3, 4, 3], dim=None)
     assert (g.dim, g.name, g.n_edges, g.n_poses, g.is_star) == (2, "pose-graph chunk 1", 2, 4, False)
     assert g.from_ids.dtype == g.to_ids.dtype == g.pose_ids.dtype == np.int64
     np.testing.assert_array_equal(g.pose_ids, [3, 4, 7, 9])  # sorted, unique, vertex 9 without edges kept
@@ -61,7 +48,7 @@ def test_from_edges_types_dimension_and_poses():
     np.testing.assert_array_equal(g3.pose_ids, [0, 1, 2])
 
 
-def test_from_edges_keeps_float64_arrays_without_copying():
-    chunk = _chunk()
+def test_from_edges_keeps_float64_arrays_without_copying(make_chunk):
+    chunk = make_chunk()
     again = PoseGraph.from_edges(chunk.from_ids, chunk.to_ids, chunk.measurements, chunk.information)
     assert again.measurements is chunk.measurements and again.information is chunk.information

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import functools
 
+import numpy as np
+
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.feature_only.maps import FeatureMap
 from msg_adapters.layout import MAP_KIND_GLOBAL, Encoded, Stamp, encode_feature_map, encode_map
@@ -39,3 +41,15 @@ def _(joined: LocalMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str,
 @encode_global.register
 def _(joined: FeatureMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float]) -> Encoded:
     return encode_feature_map(joined, seq, stamp, MAP_KIND_GLOBAL, n_submaps, stats)
+
+
+def encode_empty_global(seq: int, stamp: Stamp, stats: dict[str, float], dim: int = 2) -> Encoded:
+    """Encode the ``global_map`` of a joiner that holds no map (before the first submap, after a reset).
+
+    It has no variable, ``n_submaps`` 0 and ``end_pose_id`` -1, so a late subscriber of the latched
+    topic sees that the map is empty rather than an earlier one.
+    """
+    empty = LocalMap.trusted(
+        dim, 0, None, np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0), np.zeros((0, 0)), "empty global map"
+    )
+    return encode_map(empty, seq, stamp, MAP_KIND_GLOBAL, 0, stats)

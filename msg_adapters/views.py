@@ -178,3 +178,9 @@ def _(joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, e
 def _(joined: FeatureMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
     covs = feature_map_covariances(joined, ellipse_max_state)
     return MapViews(None, point_markers(joined.dim, joined.positions(), frame_id, stamp, covs), None)
+
+
+def empty_views(frame_id: str, stamp: Time) -> MapViews:
+    """Return the views of an empty map: an empty path and a marker array that deletes every marker."""
+    header = Header(frame_id=frame_id, stamp=stamp)
+    return MapViews(Path(header=header), MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)]), None)

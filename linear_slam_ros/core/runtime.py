@@ -66,3 +66,18 @@ def set_blas_threads(n_threads: int | None) -> None:
     except ImportError:  # pragma: no cover - threadpoolctl is a pinned dependency
         return
     threadpool_limits(limits=n_threads, user_api="blas")  # applies on construction
+
+
+def release_memory() -> bool:
+    """Hand freed heap memory back to the system (glibc ``malloc_trim``); return whether it ran.
+
+    With the fixed mmap threshold of :func:`tune_allocator`, large freed arrays stay in the heap
+    for reuse; after a reset nothing will reuse them soon, so the node trims the heap.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.malloc_trim(0))
+    except (OSError, AttributeError):
+        return False

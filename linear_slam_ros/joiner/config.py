@@ -72,6 +72,12 @@ class JoinerConfig:
         0, "subscription history depth; 0 keeps all (reliable, no submap dropped)", read_only=True, bounds=(0, 1_000_000),
     )
     reorder_window: int = _param(100, "early submaps held while waiting for a missing sequence number", bounds=(1, 1_000_000))
+    reorder_timeout: float = _param(
+        5.0, "seconds without progress after which a missing sequence number is given up", bounds=(0.01, 86_400.0),
+    )
+    reorder_max_bytes: int = _param(
+        256 << 20, "bytes the early submaps waiting in the reorder buffer may hold", bounds=(1 << 20, 1 << 40),
+    )
     ellipse_max_state: int = _param(
         1500, "largest global state (scalars) for which feature covariance ellipses are drawn", bounds=(0, 1_000_000),
     )

@@ -14,6 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import numpy as np
+
 from linear_slam_ros.core.errors import ConfigError, LinearSlamError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.timing import latency
@@ -102,20 +104,46 @@ class SavedJoiner:
     journal_records: int = 0
 
 
+FIRST_SEQ = 1
+"""Sequence number of a stream's first submap (the bag tools and the layout examples start at 1)."""
+
+
+def _nbytes(submap: LocalMap) -> int:
+    """Bytes of a submap's arrays (what it holds in the reorder buffer)."""
+    info = submap.info
+    if isinstance(info, np.ndarray):
+        info_bytes = info.nbytes
+    else:
+        info_bytes = info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
+    return int(submap.x.nbytes + submap.ids.nbytes + submap.kinds.nbytes + info_bytes)
+
+
 @dataclass
 class Joiner:
     """Sequencing and bookkeeping around :func:`join_step` (mutable; owned by one thread).
 
-    Submaps are joined in sequence-number order. A sequence number already handled (joined,
-    rejected or skipped: a front-end or a replayed bag sending it again) is skipped with a debug
-    line and counted in :attr:`n_skipped`, not as a rejection; an early one waits in a reorder
-    buffer until the gap fills, or until the buffer holds ``reorder_window`` submaps, when the
-    gap is skipped with a warning.
+    The sequence policy (README, "Behaviour"): submaps are joined in sequence-number order,
+    starting at :data:`FIRST_SEQ`.
+
+    - A sequence number already handled (joined, skipped, or waiting: a front-end or a replayed
+      bag sending it again) is skipped with a debug line and counted in :attr:`n_skipped`.
+    - A rejected submap does not use up its sequence number: a valid submap with that number may
+      still come, and is joined when it does.
+    - An early submap waits in the reorder buffer. The gap before it is skipped, with a warning,
+      when the buffer holds more than ``reorder_window`` submaps or ``reorder_max_bytes`` bytes,
+      or when the stream has not advanced for ``reorder_timeout`` seconds (:meth:`expire`), and
+      only to a credible next submap: one at most ``reorder_window`` ahead, or the first of two
+      consecutive waiting sequence numbers. A lone far-ahead submap (a sequence number of 10^9)
+      can therefore never move the stream; when the buffer is full it is the one dropped.
+    - A valid submap that adds nothing (no variable) uses up its number and changes nothing.
 
     Attributes:
         mode: joining method.
         map_type: ``as-is`` or ``feature-only``.
         reorder_window: how many early submaps may wait for a missing one.
+        reorder_timeout: seconds without progress after which a gap is skipped.
+        reorder_max_bytes: bytes of state and information the reorder buffer may hold.
+        clock: monotonic clock of :attr:`reorder_timeout`, s.
         state: the current state (:meth:`restore` a saved one).
         rejected: count of rejected submaps by reason.
         join_seconds: wall time of each successful join.
@@ -125,15 +153,21 @@ class Joiner:
     mode: JoinMethod
     map_type: MapType = MapType.AS_IS
     reorder_window: int = 100
+    reorder_timeout: float = 5.0
+    reorder_max_bytes: int = 256 << 20
+    clock: Callable[[], float] = time.monotonic
     state: JoinerState = field(init=False)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
     n_skipped: int = 0
     _pending: dict[int, LocalMap] = field(default_factory=dict)
+    _pending_bytes: int = 0
+    _progress_at: float = field(default=0.0)
 
     def __post_init__(self) -> None:
         self.state = new_state(JoinMethod(self.mode), MapType(self.map_type))
+        self._progress_at = self.clock()
 
     def reset(self) -> None:
         """Forget every submap, count and buffered message."""
@@ -141,6 +175,8 @@ class Joiner:
         self.rejected.clear()
         self.join_seconds.clear()
         self._pending.clear()
+        self._pending_bytes = 0
+        self._progress_at = self.clock()
         self.n_skipped = 0
 
     def save(self, journal_records: int = 0) -> SavedJoiner:
@@ -165,6 +201,8 @@ class Joiner:
         self.state = saved.state
         self.rejected = collections.Counter(dict(saved.rejected))
         self._pending = dict(saved.pending)
+        self._pending_bytes = sum(_nbytes(m) for m in self._pending.values())
+        self._progress_at = self.clock()
         self.n_skipped = saved.n_skipped
         self.join_seconds.clear()
 
@@ -179,10 +217,14 @@ class Joiner:
         if self.on_reject is not None:
             self.on_reject(reason, message)
 
+    @property
+    def expected(self) -> int:
+        """The sequence number joined next."""
+        return self.state.next_seq if self.state.next_seq is not None else FIRST_SEQ
+
     def already_handled(self, seq: int) -> bool:
-        """Return whether :meth:`offer` would skip ``seq`` as already handled (joined, rejected, skipped or waiting)."""
-        expected = self.state.next_seq
-        return expected is not None and seq < expected or seq in self._pending
+        """Return whether :meth:`offer` would skip ``seq`` as already handled (joined, skipped or waiting)."""
+        return seq < self.expected or seq in self._pending
 
     def offer(self, submap: LocalMap, seq: int) -> list[int]:
         """Take a decoded submap; join it (and any buffered successors) when its turn comes.
@@ -190,40 +232,87 @@ class Joiner:
         Returns:
             Sequence numbers joined by this call, in order.
         """
-        expected = self.state.next_seq
+        if seq < FIRST_SEQ:
+            self.reject("seq_out_of_range", f"submap seq {seq} rejected: sequence numbers start at {FIRST_SEQ}")
+            return []
         if self.already_handled(seq):
             self.n_skipped += 1
-            logger.debug("submap seq %d was already handled (next expected: %s): skipped", seq, expected)
+            logger.debug("submap seq %d was already handled (next expected: %d): skipped", seq, self.expected)
             return []
-        if expected is not None and seq > expected:
+        if seq > self.expected:
             self._pending[seq] = submap
-            if len(self._pending) <= self.reorder_window:
-                return []
-            skipped = min(self._pending) - expected
-            self.reject("gap", f"submaps seq {expected}..{min(self._pending) - 1} never arrived ({skipped} missing): skipped")
-            self.state = replace(self.state, next_seq=min(self._pending))
-            return self._drain()
-        joined = self._join(submap, seq)
-        return joined + self._drain()
+            self._pending_bytes += _nbytes(submap)
+            return self._relieve()
+        return self._join(submap, seq) + self._drain()
+
+    def expire(self) -> list[int]:
+        """Skip a gap that has held the stream up for ``reorder_timeout`` seconds (call it periodically).
+
+        Returns:
+            Sequence numbers joined.
+        """
+        if self._pending and self.clock() - self._progress_at >= self.reorder_timeout:
+            return self._skip_gap(f"no progress for {self.clock() - self._progress_at:.1f} s")
+        return []
+
+    def _credible(self, seq: int) -> bool:
+        """Whether the stream may move on to waiting ``seq``: near, or the first of two consecutive numbers."""
+        return seq - self.expected <= self.reorder_window or seq + 1 in self._pending
+
+    def _relieve(self) -> list[int]:
+        """Keep the buffer within its count and byte bounds: skip the gap, else drop the farthest submap."""
+        joined: list[int] = []
+        while len(self._pending) > self.reorder_window or self._pending_bytes > self.reorder_max_bytes:
+            if self._credible(min(self._pending)):
+                joined += self._skip_gap(
+                    f"the reorder buffer holds {len(self._pending)} submaps, {self._pending_bytes} bytes"
+                )
+                continue
+            far = max(self._pending)
+            self._pending_bytes -= _nbytes(self._pending.pop(far))
+            self.reject(
+                "reorder_buffer_full",
+                f"submap seq {far} dropped: it waits for seq {self.expected} and the reorder buffer is full "
+                f"({self.reorder_window} submaps, {self.reorder_max_bytes} bytes)",
+            )
+        return joined
+
+    def _skip_gap(self, why: str) -> list[int]:
+        """Move the stream to the lowest credible waiting submap, if there is one, and join from there."""
+        start = min(self._pending)
+        if not self._credible(start):
+            return []
+        self.reject("gap", f"submaps seq {self.expected}..{start - 1} never arrived or were rejected ({why}): skipped")
+        self.state = replace(self.state, next_seq=start)
+        self._progress_at = self.clock()
+        return self._drain()
 
     def _drain(self) -> list[int]:
         joined: list[int] = []
-        while self.state.next_seq in self._pending:
-            seq = self.state.next_seq
-            assert seq is not None
-            joined += self._join(self._pending.pop(seq), seq)
+        while self.expected in self._pending:
+            seq = self.expected
+            submap = self._pending.pop(seq)
+            self._pending_bytes -= _nbytes(submap)
+            done = self._join(submap, seq)
+            if not done and self.expected == seq:  # rejected: its number stays open for a valid one
+                break
+            joined += done
         return joined
 
     def _join(self, submap: LocalMap, seq: int) -> list[int]:
+        if submap.n_vars == 0:  # valid, and adds nothing: its number is used, the map unchanged
+            logger.info("submap seq %d holds no variable: nothing to join", seq)
+            self.state = replace(self.state, next_seq=seq + 1, last_seq=seq)
+            self._progress_at = self.clock()
+            return []
         t0 = time.perf_counter()
         try:
             self.state = join_step(self.state, submap, seq)
         except LinearSlamError as exc:
             self.reject(type(exc).__name__, f"submap seq {seq} rejected: {exc}")
-            if self.state.next_seq in (None, seq):  # its sequence number is used up
-                self.state = replace(self.state, next_seq=seq + 1)
             return []
         self.join_seconds.append(time.perf_counter() - t0)
+        self._progress_at = self.clock()
         return [seq]
 
     def stats(self) -> dict[str, float]:

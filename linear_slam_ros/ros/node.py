@@ -30,7 +30,7 @@ from visualization_msgs.msg import MarkerArray
 
 from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageError
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.core.runtime import set_blas_threads, tune_allocator
+from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.io.results import write_map
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
 from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, global_result
@@ -41,9 +41,9 @@ from linear_slam_ros.ros.journal import JournalError
 from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.qos import inbound_qos, latched_qos
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
-from msg_adapters.global_map import encode_global
+from msg_adapters.global_map import encode_empty_global, encode_global
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import map_views
+from msg_adapters.views import empty_views, map_views
 
 NODE_NAME = "joiner"
 PUBLISH_DUTY = 0.25
@@ -77,8 +77,11 @@ class JoinerNode(Node):
         tune_allocator()
         set_blas_threads(get_strategy(config.mode, config.map_type).blas_threads)
 
-        self.joiner = Joiner(config.mode, config.map_type, reorder_window=config.reorder_window)
-        self.joiner.on_reject = lambda reason, message: self.get_logger().warning(message)
+        self.joiner = Joiner(
+            config.mode, config.map_type, reorder_window=config.reorder_window, reorder_timeout=config.reorder_timeout,
+            reorder_max_bytes=config.reorder_max_bytes,
+        )
+        self.joiner.on_reject = self._on_reject
         self.n_received = 0
         self._version = 0  # bumped on every state change; the publisher compares it
         self._published_version = -1
@@ -109,6 +112,7 @@ class JoinerNode(Node):
         self.pub_pose = self.create_publisher(PoseStamped, "pose", latched)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=joining_group)
+        self.create_timer(0.25, self._on_expire_timer, callback_group=joining_group)
         self.create_service(Trigger, "~/save_map", self._on_save_map, callback_group=output_group)
         self.create_service(Trigger, "~/load_map", self._on_load_map, callback_group=output_group)
         if self.store is not None:
@@ -131,8 +135,8 @@ class JoinerNode(Node):
         for p in params:
             if p.name == "publish_rate":
                 self._timer.timer_period_ns = int(1e9 / float(p.value))
-            if p.name == "reorder_window":
-                self.joiner.reorder_window = int(p.value)
+            if p.name in ("reorder_window", "reorder_timeout", "reorder_max_bytes"):
+                setattr(self.joiner, p.name, getattr(changed, p.name))
         return SetParametersResult(successful=True)
 
     def _config_values(self) -> dict[str, Any]:
@@ -193,6 +197,16 @@ class JoinerNode(Node):
                 f"{self.joiner.join_seconds[-1] * 1e3:.2f} ms"
             )
 
+    def _on_reject(self, _reason: str, message: str) -> None:
+        self.get_logger().warning(message)
+        self._version += 1  # the latched statistics count it: republish
+
+    def _on_expire_timer(self) -> None:
+        """Give up a missing sequence number that has held the stream up for ``reorder_timeout`` s."""
+        with self._lock:
+            if self.joiner.expire():
+                self._version += 1
+
     # ------------------------------------------------------------------ services
 
     def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -200,7 +214,9 @@ class JoinerNode(Node):
             self.joiner.reset()
             self.n_received = 0
             self._version += 1
+        release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
+        self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
         response.success, response.message = True, "global map cleared"
         self.get_logger().info("global map reset")
         return response
@@ -333,7 +349,7 @@ class JoinerNode(Node):
             return
         with self._lock:
             state, version, stats = self.joiner.state, self._version, self.joiner.stats()
-        if version == self._published_version or state.n_joined == 0:
+        if version == self._published_version:
             return
         try:
             self._publish(state, stats)
@@ -349,12 +365,16 @@ class JoinerNode(Node):
 
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
         config = self.config
-        joined = global_result(state, config.output_frame)
-        if joined is None:  # feature-only: no group defines a feature frame yet
-            return
-        self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
         stamp = self.get_clock().now().to_msg()
-        views = map_views(joined, state.first_pose_id, config.map_frame, stamp, config.ellipse_max_state)
+        if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
+            self.pub_global.publish(to_msg(encode_empty_global(state.last_seq or 0, self._stamp(), stats)))
+            views = empty_views(config.map_frame, stamp)
+        else:
+            joined = global_result(state, config.output_frame)
+            if joined is None:  # feature-only: no group defines a feature frame yet
+                return
+            self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
+            views = map_views(joined, state.first_pose_id, config.map_frame, stamp, config.ellipse_max_state)
         if views.path is not None:
             self.pub_path.publish(views.path)
         self.pub_markers.publish(views.markers)

@@ -45,9 +45,10 @@ def test_out_of_order_duplicates_and_gaps(maps):
     assert j.offer(maps[4], 5) == []
     assert j.offer(maps[5], 6) == []
     joined = j.offer(maps[6], 7)
-    assert "gap" in dict(reasons) and "submaps seq 4..4 never arrived" in dict(reasons)["gap"]
-    assert joined == []  # seq 5 starts at pose 12, not in the map (ends at 9): rejected, as are 6, 7
-    assert j.rejected["FrameError"] == 3 and j.state.n_joined == 3
+    assert "gap" in dict(reasons) and "submaps seq 4..4 never arrived or were rejected" in dict(reasons)["gap"]
+    assert joined == []  # seq 5 starts at pose 12, not in the map (ends at 9): rejected
+    # a rejection does not use up seq 5 (a valid 5 may still come); 6 and 7 wait behind it
+    assert j.rejected["FrameError"] == 1 and j.state.n_joined == 3 and j.expected == 5
 
 
 def test_rejected_submap_leaves_the_map_unchanged(maps):
@@ -58,7 +59,7 @@ def test_rejected_submap_leaves_the_map_unchanged(maps):
     assert j.rejected["FrameError"] == 1
     after = global_map_of(j.state)
     assert after.x.tobytes() == before.x.tobytes() and j.state.n_joined == 1
-    assert j.offer(maps[1], 3) == [3]  # the stream goes on
+    assert j.offer(maps[1], 2) == [2]  # the valid 2 comes: the stream goes on
     j.reset()
     assert j.state.n_joined == 0 and j.n_rejected == 0 and global_map_of(j.state) is None
 
@@ -67,18 +68,98 @@ def test_save_and_restore_carry_on_exactly(maps):
     j = Joiner(JoinMethod.ONLINE_DC, reorder_window=5)
     j.offer(maps[0], 1)
     j.offer(maps[4], 2)  # wrong frame: rejected
-    j.offer(maps[3], 5)  # early: waits in the buffer
+    j.offer(maps[3], 4)  # early: waits in the buffer
     j.offer(maps[0], 1)  # sent again: skipped
     saved = j.save(journal_records=4)
-    assert [s for s, _ in saved.pending] == [5] and dict(saved.rejected) == {"FrameError": 1} and saved.n_skipped == 1
-    assert saved.state.next_seq == 3 and saved.journal_records == 4
+    assert [s for s, _ in saved.pending] == [4] and dict(saved.rejected) == {"FrameError": 1} and saved.n_skipped == 1
+    assert saved.state.next_seq == 2 and saved.journal_records == 4  # the rejected 2 stays open
     other = Joiner(JoinMethod.ONLINE_DC, reorder_window=5)
     other.restore(saved)
     for joiner in (j, other):
-        assert joiner.offer(maps[1], 3) == [3]
-        assert joiner.offer(maps[2], 4) == [4, 5]  # 4 fills the gap, the buffered 5 follows
+        assert joiner.offer(maps[1], 2) == [2]
+        assert joiner.offer(maps[2], 3) == [3, 4]  # 3 fills the gap, the buffered 4 follows
     np.testing.assert_array_equal(global_map_of(j.state).x, global_map_of(other.state).x)
     assert other.n_rejected == 1 and other.n_skipped == 1 and other.state.n_joined == 4
     with pytest.raises(ConfigError, match="the saved map was joined with mode='online-dc', map_type='as-is'; "
                                           "this joiner runs mode='sequential'"):
         Joiner(JoinMethod.SEQUENTIAL).restore(saved)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _joiner(**kw):
+    reasons = []
+    clock = FakeClock()
+    j = Joiner(JoinMethod.SEQUENTIAL, clock=clock, **kw)
+    j.on_reject = lambda reason, message: reasons.append((reason, message))
+    return j, reasons, clock
+
+
+def test_a_rejected_submap_leaves_its_number_to_a_valid_one(maps):
+    j, reasons, _ = _joiner()
+    assert j.offer(maps[0], 1) == [1]
+    assert j.offer(maps[5], 2) == []  # wrong frame, carrying the next number
+    assert j.offer(maps[2], 3) == []  # waits for 2
+    assert j.offer(maps[1], 2) == [2, 3]  # the valid 2 still comes, and 3 follows
+    assert [r for r, _ in reasons] == ["FrameError"] and j.n_skipped == 0
+
+
+def test_sequence_numbers_start_at_1_and_a_far_first_message_cannot_move_the_stream(maps):
+    j, reasons, clock = _joiner(reorder_window=3, reorder_timeout=1.0)
+    assert j.offer(maps[0], 0) == [] and reasons[-1][0] == "seq_out_of_range"
+    assert "sequence numbers start at 1" in reasons[-1][1]
+    assert j.offer(maps[3], 10**9) == []  # waits, alone
+    clock.now = 100.0
+    assert j.expire() == []  # a lone far-ahead submap is never a credible next one
+    assert [j.offer(m, s) for s, m in enumerate(maps[:4], start=1)] == [[1], [2], [3], [4]]
+    assert j.state.n_joined == 4 and j.state.next_seq == 5
+
+
+def test_a_node_started_mid_stream_moves_to_it_after_the_timeout(maps):
+    j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=2.0)
+    assert j.offer(maps[3], 500) == [] and j.offer(maps[4], 501) == []  # two consecutive numbers, far ahead
+    clock.now = 1.0
+    assert j.expire() == []
+    clock.now = 2.5
+    assert j.expire() == [500, 501]
+    assert "submaps seq 1..499 never arrived or were rejected (no progress for 2.5 s)" in reasons[-1][1]
+
+
+def test_a_gap_that_cannot_fill_is_skipped_after_the_timeout(maps):
+    j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=1.0)
+    assert j.offer(maps[0], 1) == [1]
+    assert j.offer(maps[2], 3) == []  # 2 never comes (it was undecodable), and few follow
+    clock.now = 0.5
+    assert j.expire() == []
+    clock.now = 1.2
+    assert j.expire() == []  # 3 starts at pose 6, the map ends at 3: skipped to, then rejected
+    assert [r for r, _ in reasons] == ["gap", "FrameError"]
+
+
+def test_the_reorder_buffer_is_bounded_in_count_and_bytes(maps):
+    size = maps[3].x.nbytes + maps[3].ids.nbytes + maps[3].kinds.nbytes + np.asarray(maps[3].info).nbytes
+    j, reasons, _ = _joiner(reorder_window=2, reorder_max_bytes=int(2.5 * size))
+    assert j.offer(maps[0], 1) == [1]
+    for far in (10**6, 10**7, 10**8):  # lone far-ahead submaps: never credible, the farthest is dropped
+        j.offer(maps[3], far)
+    assert [r for r, _ in reasons] == ["reorder_buffer_full"]
+    assert "submap seq 100000000 dropped: it waits for seq 2 and the reorder buffer is full" in reasons[0][1]
+    assert j.offer(maps[1], 2) == [2]  # the stream goes on
+    j.reset()
+    assert j.already_handled(10**6) is False  # reset empties the buffer
+
+
+def test_an_empty_submap_uses_its_number_and_changes_nothing(maps):
+    j, reasons, _ = _joiner()
+    assert j.offer(maps[0], 1) == [1]
+    before = global_map_of(j.state).x.tobytes()
+    empty = maps[1].replace(ids=maps[1].ids[:0], kinds=maps[1].kinds[:0], x=maps[1].x[:0], info=np.zeros((0, 0)), end_id=None)
+    assert j.offer(empty, 2) == [] and reasons == []
+    assert global_map_of(j.state).x.tobytes() == before and j.expected == 3
+    assert j.offer(maps[1].replace(name="m"), 3) == [3]  # the stream goes on (maps[1] starts where the map ends)

@@ -1,0 +1,431 @@
+"""Benchmark of the joiner node's persistence: journal and snapshot cost against join time, and restore time.
+
+``bench_persistence [--datasets-dir ../shared/datasets] [--out out/benchmark] [--repeat 2]``
+
+For each dataset (default VicPark_6898_local_maps and manhattanOlson3500; one that is missing
+from ``--datasets-dir`` is skipped with the reason printed), ``--repeat`` times, with the
+installed ``joiner`` started as its own process (as ``demo`` does) in mode ``online-dc`` (the
+default ``sequential`` mode is exact but O(n^2) per submap: it does not finish these streams):
+
+1. **baseline**: a joiner without ``state_dir``; the dataset's bag (``bags/<dataset>``, made
+   when missing) is replayed at full speed; the latched ``global_map`` that has joined every
+   submap gives ``join_seconds_total``; end to end = first message published to that map
+   received (the joiner is up and discovered before the clock starts).
+2. **persisted**: the same with a fresh ``state_dir`` (default ``snapshot_period``); the last
+   ``/diagnostics`` message of the joiner gives ``journal_seconds_total`` and
+   ``snapshot_seconds_total``; then the joiner is stopped with Ctrl-C (it writes a final
+   snapshot) and the stop is timed.
+3. **restore**: a joiner started again on that ``state_dir``: its ``restore_seconds_total``
+   (``/diagnostics``), its ``resumed from ... in X s`` log line, the time from process start to
+   the restored ``global_map``; then it is stopped (timed too).
+
+Targets: journal + snapshots <= 10 % of the join time (per dataset), restore of VicPark6898 <= 2 s.
+Writes ``OUT/persistence.json``, ``OUT/persistence.md`` (printed too) and the joiners' output to
+``OUT/persistence_logs/``. Runs in this process's ``ROS_DOMAIN_ID`` (``--domain-id`` to choose),
+DDS on loopback only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from rclpy.serialization import deserialize_message
+from std_msgs.msg import Float64MultiArray
+
+from linear_slam_ros.ros.bag_from_dataset import make_bag
+from linear_slam_ros.ros.bagio import BagRecord, read_messages
+from linear_slam_ros.ros.demo import joiner_command
+from linear_slam_ros.ros.player import play
+from linear_slam_ros.ros.process import loopback_env, stop_process
+from linear_slam_ros.ros.spin import LatestMessage, node_session, spin_until
+from msg_adapters import MapMessage, decode_map
+from msg_adapters.ros import parts
+
+DATASETS = ("VicPark_6898_local_maps", "manhattanOlson3500")
+MODE = "online-dc"
+MODE_NOTE = (
+    "mode online-dc: the node's default mode, sequential, is exact but O(n^2) per submap and does not finish these streams"
+)
+SUMMARY_PERIOD_S = 0.5
+"""The joiners' ``summary_period``: a ``/diagnostics`` message soon after the last submap."""
+TARGET_RATIO = 0.10
+"""Journal + snapshot seconds over join seconds, at most."""
+TARGET_RESTORE_S = {"VicPark_6898_local_maps": 2.0}
+"""Restore seconds, at most, per dataset."""
+STOP_TIMEOUT_S = 300.0
+"""Ctrl-C, then kill after this long (the final snapshot of a large map takes a while)."""
+RESUMED = re.compile(r"resumed from (?P<snapshot>.+?) and (?P<records>\d+) journal record\(s\) in (?P<seconds>[0-9.]+) s")
+
+
+class Diagnostics:
+    """The newest ``/diagnostics`` status of one node (status name ``"<node name>: joining"``), as numbers."""
+
+    def __init__(self, node: Node, node_name: str) -> None:
+        self.node = node
+        self.status_name = f"{node_name}: joining"
+        self.values: dict[str, float] = {}
+        self.previous: dict[str, float] = {}
+        self.count = 0
+        self.received_at = 0.0
+        self._sub = node.create_subscription(DiagnosticArray, "/diagnostics", self._on_message, 50)
+
+    def _on_message(self, msg: Any) -> None:
+        for status in msg.status:
+            if status.name != self.status_name:
+                continue
+            values = {}
+            for kv in status.values:
+                try:
+                    values[kv.key] = float(kv.value)
+                except ValueError:
+                    continue
+            self.previous, self.values = self.values, values
+            self.count += 1
+            self.received_at = time.monotonic()
+
+    def handled(self) -> int:
+        """Submaps joined or rejected, by the newest status (0 before the first)."""
+        return int(self.values.get("n_joined", 0) + self.values.get("n_rejected", 0))
+
+    def wait(self, done: Any, timeout_s: float, process: subprocess.Popen[Any]) -> None:
+        """Spin until ``done()``; raise if the process exits or ``timeout_s`` passes first."""
+
+        def check() -> bool:
+            if done():
+                return True
+            if process.poll() is not None:
+                raise RuntimeError(f"joiner exited with code {process.returncode} (its output: see the log)")
+            return False
+
+        if not spin_until(self.node, check, timeout_s):
+            raise TimeoutError(f"{self.status_name}: condition not met within {timeout_s:.0f} s (last status {self.values})")
+
+    def wait_settled(self, keys: Sequence[str], timeout_s: float, process: subprocess.Popen[Any]) -> dict[str, float]:
+        """Wait for two more statuses in which ``keys`` no longer change; return the last."""
+        start = self.count
+
+        def settled() -> bool:
+            return self.count >= start + 2 and all(self.values.get(k) == self.previous.get(k) for k in keys)
+
+        self.wait(settled, timeout_s, process)
+        return dict(self.values)
+
+    def close(self) -> None:
+        """Destroy the subscription."""
+        self.node.destroy_subscription(self._sub)
+
+    def __enter__(self) -> Diagnostics:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+@dataclass
+class JoinerRun:
+    """A joiner process of the benchmark (its output to a log file) and when it was started."""
+
+    params: dict[str, object]
+    log: Path
+    namespace: str
+    node_name: str
+    process: subprocess.Popen[bytes] = field(init=False)
+    started_at: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        # demo.start_joiner's command, plus remaps that keep this run apart and the output kept in a file.
+        cmd = joiner_command() + ["--ros-args", "-r", f"__ns:=/{self.namespace}", "-r", f"__node:={self.node_name}"]
+        for k, v in self.params.items():
+            cmd += ["-p", f"{k}:={v}"]
+        self.log.parent.mkdir(parents=True, exist_ok=True)
+        with self.log.open("wb") as out:
+            self.started_at = time.monotonic()
+            self.process = subprocess.Popen(cmd, env=dict(os.environ), stdout=out, stderr=subprocess.STDOUT)
+
+    def topic(self, name: str) -> str:
+        return f"/{self.namespace}/{name}"
+
+    def global_map(self, node: Node) -> LatestMessage[MapMessage]:
+        """Return a subscription to this joiner's latched ``global_map``."""
+        return LatestMessage(node, self.topic("global_map"), decode_global_map)
+
+    def stop(self) -> tuple[int, float]:
+        """Stop as Ctrl-C does; return the exit code and the seconds the stop took."""
+        t0 = time.monotonic()
+        code = stop_process(self.process, STOP_TIMEOUT_S)
+        return code, time.monotonic() - t0
+
+    def output(self) -> str:
+        return self.log.read_text(errors="replace") if self.log.exists() else ""
+
+
+def decode_global_map(raw: bytes) -> MapMessage:
+    """Return the decoded ``global_map`` message of its CDR bytes (as the ROS tests decode it)."""
+    return decode_map(*parts(deserialize_message(raw, Float64MultiArray)))
+
+
+def dataset_bag(archive: Path, bags_dir: Path) -> Path:
+    """Return ``bags_dir/<dataset>``, made from the archive (10 Hz stamps) when it is not there yet."""
+    bag = bags_dir / archive.name.removesuffix(".tar.xz")
+    if not (bag / "metadata.yaml").exists():
+        print(f"making bag {bag} from {archive} ...", flush=True)
+        make_bag(archive, bag, rate_hz=10.0)
+    return bag
+
+
+def folder_bytes(folder: Path) -> int:
+    """Total size of the files below ``folder``."""
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def replay(
+    node: Node, records: Sequence[BagRecord], params: dict[str, object], log: Path, tag: str, timeout_s: float
+) -> dict[str, Any]:
+    """Start a joiner, replay ``records`` into it at full speed, wait until every submap is handled, stop it."""
+    n_sent = len(records)
+    joiner = JoinerRun(params, log, f"bench_persistence_{os.getpid()}_{tag}", f"joiner_{tag}")
+    try:
+        with Diagnostics(node, joiner.node_name) as diag, joiner.global_map(node) as latest:
+            diag.wait(lambda: diag.count > 0, 120.0, joiner.process)  # the joiner is up and this node sees it
+            ready_s = diag.received_at - joiner.started_at
+            t0 = time.monotonic()
+            publish_s = play(node, [r._replace(topic=joiner.topic(r.topic)) for r in records], rate_factor=0.0, wait_s=60.0)
+            # Gate on the cheap diagnostics first: a global map received is only decoded once looked at.
+            diag.wait(lambda: diag.handled() >= n_sent, timeout_s, joiner.process)
+
+            def all_handled(m: MapMessage) -> bool:
+                return bool(m.n_submaps >= n_sent or (m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent))
+
+            try:
+                ok = latest.wait(all_handled, timeout_s, joiner.process)
+            except ChildProcessError as exc:
+                raise RuntimeError(f"{exc} (its output: {log})") from None
+            message = latest.value
+            if not ok or message is None:
+                raise TimeoutError(f"no global_map with all {n_sent} submaps within {timeout_s:.0f} s")
+            end_to_end_s = latest.received_at - t0
+            values = diag.wait_settled(["journal_seconds_total", "snapshot_seconds_total", "n_joined"], 60.0, joiner.process)
+        code, stop_s = joiner.stop()
+    except BaseException:
+        stop_process(joiner.process, STOP_TIMEOUT_S)
+        raise
+    stats = message.stats or {}
+    return {
+        "n_sent": n_sent,
+        "n_joined": message.n_submaps,
+        "n_rejected": int(stats.get("n_rejected", 0)),
+        "join_seconds_total": stats.get("join_seconds_total"),
+        "join_ms_p99": stats.get("join_ms_p99"),
+        "join_ms_max": stats.get("join_ms_max"),
+        "journal_seconds_total": values.get("journal_seconds_total"),
+        "snapshot_seconds_total": values.get("snapshot_seconds_total"),
+        "restore_seconds_total": values.get("restore_seconds_total"),
+        "startup_s": ready_s,
+        "publish_s": publish_s,
+        "end_to_end_s": end_to_end_s,
+        "stop_s": stop_s,
+        "exit_code": code,
+    }
+
+
+def restore(node: Node, n_sent: int, params: dict[str, object], log: Path, tag: str, timeout_s: float) -> dict[str, Any]:
+    """Start a joiner on a ``state_dir`` that holds a state; measure its restore; stop it."""
+    joiner = JoinerRun(params, log, f"bench_persistence_{os.getpid()}_{tag}", f"joiner_{tag}")
+    try:
+        with Diagnostics(node, joiner.node_name) as diag, joiner.global_map(node) as latest:
+            diag.wait(lambda: diag.count > 0, timeout_s, joiner.process)
+            first_status_s = diag.received_at - joiner.started_at
+            try:
+                ok = latest.wait(lambda m: m.n_submaps >= n_sent, timeout_s, joiner.process)
+            except ChildProcessError as exc:
+                raise RuntimeError(f"{exc} (its output: {log})") from None
+            message = latest.value
+            if not ok or message is None:
+                raise TimeoutError(f"restored joiner published no global_map with {n_sent} submaps within {timeout_s:.0f} s")
+            map_s = latest.received_at - joiner.started_at
+            values = dict(diag.values)
+        code, stop_s = joiner.stop()
+    except BaseException:
+        stop_process(joiner.process, STOP_TIMEOUT_S)
+        raise
+    m = RESUMED.search(joiner.output())
+    return {
+        "n_joined": message.n_submaps,
+        "restore_seconds_total": values.get("restore_seconds_total"),
+        "resumed_log_s": float(m["seconds"]) if m else None,
+        "resumed_from": Path(m["snapshot"]).name if m else None,
+        "journal_records_replayed": int(m["records"]) if m else None,
+        "startup_snapshot_s": values.get("snapshot_seconds_total"),
+        "first_status_s": first_status_s,
+        "start_to_map_s": map_s,
+        "stop_s": stop_s,
+        "exit_code": code,
+    }
+
+
+def bench_dataset(node: Node, archive: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """Run the three phases ``args.repeat`` times on one dataset; return its figures."""
+    name = archive.name.removesuffix(".tar.xz")
+    records = list(read_messages(dataset_bag(archive, args.bags_dir)))
+    base = {"mode": MODE, "summary_period": SUMMARY_PERIOD_S}
+    logs = args.out / "persistence_logs"
+    runs = []
+    for rep in range(1, args.repeat + 1):
+        tag = f"{name}_{rep}"
+        print(f"{name} run {rep}/{args.repeat}: {len(records)} submaps, baseline (no state_dir) ...", flush=True)
+        baseline = replay(node, records, base, logs / f"{tag}_baseline.log", f"b{rep}", args.timeout)
+        state_dir = (args.out / "persistence_state" / tag).resolve()
+        shutil.rmtree(state_dir, ignore_errors=True)
+        print(f"{name} run {rep}/{args.repeat}: with state_dir {state_dir} ...", flush=True)
+        persisted = replay(
+            node, records, {**base, "state_dir": state_dir}, logs / f"{tag}_persisted.log", f"p{rep}", args.timeout
+        )
+        persisted["state_dir_bytes"] = folder_bytes(state_dir)
+        print(f"{name} run {rep}/{args.repeat}: restore ...", flush=True)
+        restored = restore(node, len(records), {**base, "state_dir": state_dir}, logs / f"{tag}_restore.log", f"r{rep}",
+                           args.timeout)
+        restored["state_dir_bytes_after"] = folder_bytes(state_dir)
+        if not args.keep_state:
+            shutil.rmtree(state_dir, ignore_errors=True)
+        persist_s = persisted["journal_seconds_total"] + persisted["snapshot_seconds_total"]
+        runs.append({
+            "repetition": rep,
+            "baseline": baseline,
+            "persisted": persisted,
+            "restore": restored,
+            "persistence_seconds": persist_s,
+            "ratio": persist_s / persisted["join_seconds_total"],
+            # The final snapshot at Ctrl-C, estimated as the extra time the stop took.
+            "final_snapshot_s_est": persisted["stop_s"] - baseline["stop_s"],
+        })
+        print(f"  -> {table_rows(name, runs[-1])[0]}", flush=True)
+    restore_target = TARGET_RESTORE_S.get(name)
+    return {
+        "dataset": name,
+        "n_submaps": len(records),
+        "runs": runs,
+        "target_ratio": TARGET_RATIO,
+        "ratio_met": all(r["ratio"] <= TARGET_RATIO for r in runs),
+        "target_restore_s": restore_target,
+        "restore_met": None if restore_target is None else all(
+            r["restore"]["restore_seconds_total"] <= restore_target for r in runs
+        ),
+    }
+
+
+HEADER = (
+    "| dataset | run | join s (no state / state) | journal s | snapshot s | (journal+snapshot)/join | final snapshot s (stop) "
+    "| end-to-end s (no state / state) | restore s (diag / log) | restore: start to map s | state_dir MB |\n"
+    "|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def table_rows(name: str, r: dict[str, Any]) -> list[str]:
+    b, p, s = r["baseline"], r["persisted"], r["restore"]
+    log_s = "–" if s["resumed_log_s"] is None else f"{s['resumed_log_s']:.2f}"
+    return [
+        f"| {name} | {r['repetition']} | {b['join_seconds_total']:.2f} / {p['join_seconds_total']:.2f} "
+        f"| {p['journal_seconds_total']:.3f} | {p['snapshot_seconds_total']:.3f} | {r['ratio']:.3f} "
+        f"| {p['stop_s']:.2f} (baseline {b['stop_s']:.2f}) | {b['end_to_end_s']:.1f} / {p['end_to_end_s']:.1f} "
+        f"| {s['restore_seconds_total']:.2f} / {log_s} | {s['start_to_map_s']:.1f} | {p['state_dir_bytes'] / 1e6:.1f} |"
+    ]
+
+
+def markdown(results: list[dict[str, Any]], command: str) -> str:
+    lines = [
+        "# Persistence cost of the joiner node",
+        "",
+        f"`{command}`; {MODE_NOTE}. Default `snapshot_period`; bags replayed at full speed; "
+        f"summary_period {SUMMARY_PERIOD_S} s. Seconds: join, journal, snapshot and restore as the node counts them; "
+        "end-to-end: first submap published to the global map with every submap received; final snapshot: the Ctrl-C "
+        "stop of the joiner with state_dir (baseline: the stop without).",
+        "",
+        HEADER,
+    ]
+    notes = []
+    for res in results:
+        if "skipped" in res:
+            notes.append(f"- {res['dataset']}: skipped ({res['skipped']})")
+            continue
+        for r in res["runs"]:
+            lines += table_rows(res["dataset"], r)
+        ratios = ", ".join(f"{r['ratio']:.3f}" for r in res["runs"])
+        notes.append(
+            f"- {res['dataset']} ({res['n_submaps']} submaps): (journal+snapshot)/join {ratios} "
+            f"(target <= {TARGET_RATIO:.2f}): {'met' if res['ratio_met'] else 'NOT met'}"
+        )
+        if res["target_restore_s"] is not None:
+            restores = ", ".join(f"{r['restore']['restore_seconds_total']:.2f}" for r in res["runs"])
+            notes.append(
+                f"- {res['dataset']}: restore {restores} s (target <= {res['target_restore_s']:.1f} s): "
+                f"{'met' if res['restore_met'] else 'NOT met'}"
+            )
+    return "\n".join(lines + [""] + notes) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point."""
+    ap = argparse.ArgumentParser(
+        prog="bench_persistence", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
+    ap.add_argument("--out", type=Path, default=Path("out/benchmark"))
+    ap.add_argument("--bags-dir", type=Path, default=Path("bags"), help="where bags/<dataset> are found or made")
+    ap.add_argument("--datasets", nargs="+", default=list(DATASETS), help="dataset names (archives without .tar.xz)")
+    ap.add_argument("--repeat", type=int, default=2, help="runs per dataset (this VM is noisy)")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for a run's global map")
+    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)")
+    ap.add_argument("--keep-state", action="store_true", help="keep OUT/persistence_state/<dataset>_<run>")
+    args = ap.parse_args(argv)
+    command = "python -m linear_slam_ros.ros.bench_persistence " + " ".join(sys.argv[1:] if argv is None else argv)
+    os.environ.update(loopback_env(args.domain_id))  # this process's DDS, and the joiners' (they inherit it)
+    args.out.mkdir(parents=True, exist_ok=True)
+    print(MODE_NOTE, flush=True)
+
+    results: list[dict[str, Any]] = []
+    failed = False
+    with node_session(f"bench_persistence_{os.getpid()}", []) as node:
+        for name in args.datasets:
+            archive = args.datasets_dir / f"{name}.tar.xz"
+            if not archive.exists():
+                reason = f"{archive} not found"
+                print(f"skipping {name}: {reason}", flush=True)
+                results.append({"dataset": name, "skipped": reason})
+                continue
+            try:
+                results.append(bench_dataset(node, archive, args))
+            except (RuntimeError, TimeoutError) as exc:
+                print(f"{name} failed: {exc}", file=sys.stderr, flush=True)
+                results.append({"dataset": name, "failed": str(exc)})
+                failed = True
+
+    report = {
+        "command": command,
+        "mode": MODE,
+        "note": MODE_NOTE,
+        "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"),
+        "summary_period": SUMMARY_PERIOD_S,
+        "datasets": results,
+    }
+    (args.out / "persistence.json").write_text(json.dumps(report, indent=2) + "\n")
+    text = markdown([r for r in results if "failed" not in r], command)
+    (args.out / "persistence.md").write_text(text)
+    print(text)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

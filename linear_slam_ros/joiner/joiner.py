@@ -111,10 +111,7 @@ FIRST_SEQ = 1
 def _nbytes(submap: LocalMap) -> int:
     """Bytes of a submap's arrays (what it holds in the reorder buffer)."""
     info = submap.info
-    if isinstance(info, np.ndarray):
-        info_bytes = info.nbytes
-    else:
-        info_bytes = info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
+    info_bytes = info.nbytes if isinstance(info, np.ndarray) else info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
     return int(submap.x.nbytes + submap.ids.nbytes + submap.kinds.nbytes + info_bytes)
 
 

@@ -280,7 +280,7 @@ def bench_dataset(node: Node, archive: Path, args: argparse.Namespace) -> dict[s
     """Run the three phases ``args.repeat`` times on one dataset; return its figures."""
     name = archive.name.removesuffix(".tar.xz")
     records = list(read_messages(dataset_bag(archive, args.bags_dir)))
-    base = {"mode": MODE, "summary_period": SUMMARY_PERIOD_S}
+    base: dict[str, object] = {"mode": MODE, "summary_period": SUMMARY_PERIOD_S, **args.params}
     logs = args.out / "persistence_logs"
     runs = []
     for rep in range(1, args.repeat + 1):
@@ -389,7 +389,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds to wait for a run's global map")
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)")
     ap.add_argument("--keep-state", action="store_true", help="keep OUT/persistence_state/<dataset>_<run>")
+    ap.add_argument("--set", dest="params", action="append", default=[], metavar="NAME=VALUE",
+                    help="another joiner parameter for every run (e.g. publish_rate=0.05); repeatable")
     args = ap.parse_args(argv)
+    try:
+        args.params = dict(p.split("=", 1) for p in args.params)
+    except ValueError:
+        ap.error(f"--set takes NAME=VALUE, got {args.params}")
     command = "python -m linear_slam_ros.ros.bench_persistence " + " ".join(sys.argv[1:] if argv is None else argv)
     os.environ.update(loopback_env(args.domain_id))  # this process's DDS, and the joiners' (they inherit it)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -418,6 +424,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "note": MODE_NOTE,
         "ros_domain_id": os.environ.get("ROS_DOMAIN_ID"),
         "summary_period": SUMMARY_PERIOD_S,
+        "joiner_parameters": {"mode": MODE, "summary_period": SUMMARY_PERIOD_S, **args.params},
         "datasets": results,
     }
     (args.out / "persistence.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -690,6 +690,7 @@ class Journal:
         fsync_every: int | None,
         clock: Callable[[], float],
         lock: BinaryIO,
+        sync_in_append: bool = True,
     ) -> None:
         """Use :meth:`open`."""
         self._folder = folder
@@ -706,6 +707,7 @@ class Journal:
         self._failed: str | None = None
         self._clamped = False
         self._lock_file = lock  # flock'ed until close(): one writer per journal
+        self._sync_in_append = sync_in_append
 
     @classmethod
     def open(
@@ -715,6 +717,7 @@ class Journal:
         fsync_period_s: float | None = DEFAULT_FSYNC_PERIOD_S,
         fsync_every: int | None = DEFAULT_FSYNC_EVERY,
         clock: Callable[[], float] = time.monotonic,
+        sync_in_append: bool = True,
     ) -> Journal:
         """Open a journal for appending: create the folder, or add a new storage file to a journal.
 
@@ -730,6 +733,10 @@ class Journal:
             fsync_every: fsync the storage file after this many records since the last fsync;
                 ``None``: never by count. Both ``None``: only :meth:`flush` and :meth:`close` fsync.
             clock: monotonic time source in seconds, for tests.
+            sync_in_append: apply the fsync policy inside :meth:`append`; with ``False`` only
+                :meth:`maybe_sync` (from a timer, off the appending thread) and :meth:`flush` fsync,
+                so an append never waits for the disk (the node's choice: the bound becomes the
+                policy plus the timer's period).
 
         Raises:
             JournalError: the folder holds something else than a journal, one of its storage files
@@ -771,7 +778,9 @@ class Journal:
             try:
                 storage.fsync()
                 _fsync_dir(folder)
-                journal = cls(folder, storage, earlier, contents.count, fsync_period_s, fsync_every, clock, lock)
+                journal = cls(
+                    folder, storage, earlier, contents.count, fsync_period_s, fsync_every, clock, lock, sync_in_append
+                )
                 _write_metadata(folder, journal._files(), fsync=True)
             except OSError as exc:
                 storage.abandon()
@@ -853,21 +862,28 @@ class Journal:
                 self._fail(exc)
             self._next_index += 1
             self._unsynced += 1
-            if (self._every is not None and self._unsynced >= self._every) or self._period_elapsed():
+            if self._sync_in_append and self._sync_due():
                 self._sync()
             return index
 
     def maybe_sync(self) -> bool:
-        """Fsync the storage file if records await it and ``fsync_period_s`` has passed; return whether it did.
+        """Fsync the storage file if the policy says so (``fsync_period_s`` passed, or ``fsync_every`` records
+        await it); return whether it did.
 
         Call it from a timer (period about ``fsync_period_s``) so that the last records before a
-        quiet spell are synced too. Does nothing on a closed journal.
+        quiet spell are synced too, and so that a journal opened with ``sync_in_append=False``
+        is synced at all. The fsync itself runs without the journal's lock: appends from another
+        thread go on meanwhile. Does nothing on a closed journal.
         """
         with self._lock:
-            if self._closed or self._failed or not self._unsynced or not self._period_elapsed():
+            if self._closed or self._failed or not self._unsynced or not self._sync_due():
                 return False
-            self._sync()
-            return True
+            storage, covered = self._storage, self._unsynced
+        storage.fsync()  # the records appended before this call: later ones wait for the next sync
+        with self._lock:
+            self._unsynced = max(0, self._unsynced - covered)
+            self._last_sync = self._clock()
+        return True
 
     def flush(self, fsync: bool = True) -> None:
         """Rewrite metadata.yaml with the current counts; with ``fsync``, make every appended record durable first.
@@ -946,6 +962,9 @@ class Journal:
 
     def _period_elapsed(self) -> bool:
         return self._period is not None and self._clock() - self._last_sync >= self._period
+
+    def _sync_due(self) -> bool:
+        return (self._every is not None and self._unsynced >= self._every) or self._period_elapsed()
 
     def _sync(self) -> None:
         self._storage.fsync()

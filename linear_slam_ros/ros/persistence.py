@@ -127,8 +127,8 @@ class StateStore:
 
     def open_journal(self) -> Journal:
         """Open the journal for appending (a new storage file of the same bag)."""
-        if self._journal is None:
-            self._journal = Journal.open(self.journal_dir)
+        if self._journal is None:  # fsyncs run in the node's timer (maybe_sync), never inside an append
+            self._journal = Journal.open(self.journal_dir, sync_in_append=False)
         return self._journal
 
     @property

@@ -29,6 +29,7 @@ test-slow: setup
 ## Figures: every dataset with every method, to out/benchmark/benchmark.{md,json} (not a test).
 benchmark: setup
 	$(PY) -m linear_slam_ros benchmark --datasets-dir $(DATASETS) --out out/benchmark
+	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.bench_persistence --datasets-dir $(DATASETS) --out out/benchmark
 
 setup: $(VENV)/.installed install/.built .cache/datasets/.unpacked
 

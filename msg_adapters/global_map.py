@@ -43,13 +43,22 @@ def _(joined: FeatureMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[st
     return encode_feature_map(joined, seq, stamp, MAP_KIND_GLOBAL, n_submaps, stats)
 
 
-def encode_empty_global(seq: int, stamp: Stamp, stats: dict[str, float], dim: int = 2) -> Encoded:
+def encode_empty_global(result_type: type, seq: int, stamp: Stamp, stats: dict[str, float], dim: int = 2) -> Encoded:
     """Encode the ``global_map`` of a joiner that holds no map (before the first submap, after a reset).
 
-    It has no variable, ``n_submaps`` 0 and ``end_pose_id`` -1, so a late subscriber of the latched
-    topic sees that the map is empty rather than an earlier one.
+    It has no variable and ``n_submaps`` 0, so a late subscriber of the latched topic sees that
+    the map is empty rather than an earlier one; it is in the layout of the joiner's map type
+    (``result_type``: ``LocalMap`` or ``FeatureMap``), so the subscriber's decoder reads it.
+
+    Raises:
+        TypeError: no empty map is known for ``result_type``.
     """
-    empty = LocalMap.trusted(
-        dim, 0, None, np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0), np.zeros((0, 0)), "empty global map"
-    )
-    return encode_map(empty, seq, stamp, MAP_KIND_GLOBAL, 0, stats)
+    empty_of = {
+        LocalMap: lambda: LocalMap.trusted(
+            dim, 0, None, np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0), np.zeros((0, 0)), "empty global map"
+        ),
+        FeatureMap: lambda: FeatureMap(dim, (), np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 0)), "empty global map"),
+    }
+    if result_type not in empty_of:
+        raise TypeError(f"no empty global_map for {result_type.__name__}")
+    return encode_global(empty_of[result_type](), seq, stamp, 0, stats)

@@ -37,6 +37,12 @@ Pose-graph chunk (the relative-pose constraints of one submap)::
     edge_to     k pose ids
     measurement k * p values: pose ``to`` seen from pose ``from`` (p = 3 in 2D, 6 in 3D)
     information k * p * p values: each edge's p x p information, row-major
+
+Input limits (:class:`linear_slam_ros.core.limits.InputLimits`, an optional ``limits`` argument
+of every decoder; the default limits when None): the state size, the number of information
+triplets and of chunk edges are checked from the header and the declared segment sizes, before
+any array is built from them; the numbers (information magnitudes and conditioning, angles,
+coordinates) by the validation of the decoded map or graph, with the same limits.
 """
 
 from __future__ import annotations
@@ -50,7 +56,9 @@ import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import InvalidMapError, MessageError
 from linear_slam_ros.core.geometry import pose_size
-from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, to_csr
+from linear_slam_ros.core.limits import InputLimits, beyond_message, first_beyond, limits_or_default, size_fault
+from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, check_information, to_csr
+from linear_slam_ros.core.solvers import DENSE_MAX
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.pose_graph.graph import PoseGraph
 
@@ -190,28 +198,62 @@ def _encode_map_segments(
 def _segments(
     labels: Sequence[str], sizes: Sequence[int], data: FloatArray, offset: int, required: Sequence[str], what: str
 ) -> dict[str, FloatArray]:
+    """Return each segment of ``data`` by label (views: nothing is allocated from the sizes).
+
+    Checks the layout only; the values' finiteness is :func:`_check_finite`'s, after the
+    header and the size limits.
+    """
     data = np.asarray(data, dtype=np.float64)
     if offset != 0:
         raise MessageError(f"{what}: layout.data_offset must be 0, got {offset}")
     if len(labels) != len(sizes):
         raise MessageError(f"{what}: {len(labels)} labels for {len(sizes)} sizes")
-    total = int(sum(int(s) for s in sizes))
+    declared = [int(s) for s in sizes]
+    if any(s < 0 for s in declared):
+        raise MessageError(f"{what}: negative segment size in layout {declared}")
+    total = sum(declared)
     if total != data.size:
         raise MessageError(f"{what}: layout sizes add up to {total} values but data has {data.size}")
     out: dict[str, FloatArray] = {}
     pos = 0
-    for label, size in zip(labels, sizes, strict=False):
+    for label, size in zip(labels, declared, strict=False):
         if label in out:
             raise MessageError(f"{what}: segment {label!r} appears twice")
-        out[label] = data[pos : pos + int(size)]
-        pos += int(size)
+        out[label] = data[pos : pos + size]
+        pos += size
     missing = [k for k in required if k not in out]
     if missing:
         raise MessageError(f"{what}: missing segment(s) {missing}; labels were {list(labels)}")
-    if not np.all(np.isfinite(data)):
-        bad = [k for k, v in out.items() if not np.all(np.isfinite(v))]
-        raise MessageError(f"{what}: non-finite values in segment(s) {bad}")
     return out
+
+
+def _check_finite(seg: dict[str, FloatArray], what: str) -> None:
+    bad = [k for k, v in seg.items() if not np.all(np.isfinite(v))]
+    if bad:
+        raise MessageError(f"{what}: non-finite values in segment(s) {bad}")
+
+
+def _check_size(quantity: str, value: int, limit_name: str, limits: InputLimits, what: str) -> None:
+    fault = size_fault(quantity, value, limit_name, limits)
+    if fault is not None:
+        raise MessageError(f"{what}: {fault}")
+
+
+def _check_map_sizes(seg: dict[str, FloatArray], limits: InputLimits, what: str) -> None:
+    """Refuse a map message from its declared sizes alone, before any array is built."""
+    n = seg["state"].size
+    _check_size("state scalars", n, "max_state_scalars", limits, what)
+    for name in ("var_ids", "var_kinds", "frame_features"):
+        if name in seg:
+            _check_size(f"values in segment {name!r}", seg[name].size, "max_state_scalars", limits, what)
+    for name in ("info_rows", "info_cols", "info_vals"):
+        _check_size(f"information triplets (segment {name!r})", seg[name].size, "max_info_triplets", limits, what)
+    k = seg["info_vals"].size
+    if k > n * (n + 1) // 2:
+        raise MessageError(
+            f"{what}: {k} information triplets, more than the {n * (n + 1) // 2} entries of the upper triangle "
+            f"of a state of {n} values: some repeat"
+        )
 
 
 def _ints(values: FloatArray, name: str, what: str) -> npt.NDArray[np.int64]:
@@ -224,6 +266,7 @@ def _header(seg: dict[str, FloatArray], size: int, what: str) -> npt.NDArray[np.
     header = seg["header"]
     if header.size < size:
         raise MessageError(f"{what}: header has {header.size} values, format 1 needs {size}")
+    _check_finite({"header": header}, what)
     h = _ints(header[:size], "header", what)
     if h[0] != FORMAT_VERSION:
         raise MessageError(f"{what}: unsupported format version {h[0]} (this node reads {FORMAT_VERSION})")
@@ -252,7 +295,9 @@ class _MapFields:
     what: str
 
 
-def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int) -> _MapFields:
+def _decode_map_fields(
+    labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int, limits: InputLimits
+) -> _MapFields:
     what = "map message"
     seg = _segments(labels, sizes, data, data_offset, MAP_SEGMENTS, what)
     h = _header(seg, _MAP_HEADER, what)
@@ -260,6 +305,8 @@ def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatA
     if map_kind not in (MAP_KIND_LOCAL, MAP_KIND_GLOBAL):
         raise MessageError(f"{what}: map_kind must be {MAP_KIND_LOCAL} (local) or {MAP_KIND_GLOBAL} (global), got {map_kind}")
     what = f"map message seq {seq}"
+    _check_map_sizes(seg, limits, what)
+    _check_finite(seg, what)
     ids = _ints(seg["var_ids"], "var_ids", what)
     kinds = _ints(seg["var_kinds"], "var_kinds", what)
     if ids.size != kinds.size:
@@ -278,9 +325,7 @@ def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatA
         raise MessageError(f"{what}: repeated information entry")
     upper = sp.coo_matrix((vals, (rows, cols)), shape=(n, n))
     info = (upper + sp.triu(upper, k=1).T).tocsr()
-    from linear_slam_ros.core.solvers import DENSE_MAX
-
-    stored = info.toarray() if n <= DENSE_MAX else info
+    stored = info.toarray() if n <= DENSE_MAX else info  # small systems are solved densely; never above
     stats = None
     if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
         stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"], strict=False)}
@@ -290,15 +335,25 @@ def _decode_map_fields(labels: Sequence[str], sizes: Sequence[int], data: FloatA
     )
 
 
-def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> MapMessage:
+def decode_map(
+    labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0, limits: InputLimits | None = None
+) -> MapMessage:
     """Decode a local or global map message; validate the map.
 
+    Args:
+        labels, sizes, data, data_offset: the message's layout and data.
+        limits: size and numeric bounds (default limits when None): the sizes are checked
+            from the layout before any array is built, the numbers by the map's validation.
+
     Raises:
-        MessageError: the layout does not follow the contract (names the segment), or the
-            message holds a feature-only map (decode it with :func:`decode_feature_map`).
-        InvalidMapError: the map itself is invalid (names the map and the fault).
+        MessageError: the layout does not follow the contract (names the segment), a size is
+            above its limit (names the limit and the value), or the message holds a
+            feature-only map (decode it with :func:`decode_feature_map`).
+        InvalidMapError: the map itself is invalid (names the map and the fault, a numeric
+            limit and the value).
     """
-    f = _decode_map_fields(labels, sizes, data, data_offset)
+    lim = limits_or_default(limits)
+    f = _decode_map_fields(labels, sizes, data, data_offset, lim)
     if "frame_features" in f.segments:
         raise MessageError(f"{f.what}: a feature-only map (segment 'frame_features'); decode it with decode_feature_map")
     name = f"{'local' if f.map_kind == MAP_KIND_LOCAL else 'global'} map seq {f.seq}"
@@ -306,24 +361,43 @@ def decode_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, da
     if np.any((kinds != 0) & (kinds != 1)):
         bad = kinds[(kinds != 0) & (kinds != 1)][0]
         raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {bad}")
-    local_map = LocalMap(f.dim, f.frame_pose_id, f.end_pose_id, f.ids, kinds.astype(np.int8), f.state, f.info, name=name)
+    local_map = LocalMap.trusted(f.dim, f.frame_pose_id, f.end_pose_id, f.ids, kinds.astype(np.int8), f.state, f.info, name=name)
+    local_map.validate(lim)
     return MapMessage(local_map, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
 
 
-def decode_feature_map(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> FeatureMapMessage:
+def decode_feature_map(
+    labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0, limits: InputLimits | None = None
+) -> FeatureMapMessage:
     """Decode a feature-only map message (with a ``frame_features`` segment); validate the map.
 
+    Args:
+        labels, sizes, data, data_offset: the message's layout and data.
+        limits: size and numeric bounds (default limits when None), as in :func:`decode_map`;
+            the information is checked as a local map's
+            (:func:`linear_slam_ros.core.local_map.check_information`), the coordinates
+            against ``max_coordinate``.
+
     Raises:
-        MessageError: the layout does not follow the contract (names the segment).
+        MessageError: the layout does not follow the contract (names the segment), or a size
+            is above its limit (names the limit and the value).
         InvalidMapError: the map itself is invalid (names the map and the fault).
     """
-    f = _decode_map_fields(labels, sizes, data, data_offset)
+    lim = limits_or_default(limits)
+    f = _decode_map_fields(labels, sizes, data, data_offset, lim)
     if "frame_features" not in f.segments:
         raise MessageError(f"{f.what}: no 'frame_features' segment: not a feature-only map (decode it with decode_map)")
     frame = _ints(f.segments["frame_features"], "frame_features", f.what)
     if np.any(f.kinds != 1):
         raise InvalidMapError(f"feature-only map seq {f.seq}: every variable must be a feature (kind 1)")
-    fmap = FeatureMap(f.dim, tuple(int(i) for i in frame), f.ids, f.state, f.info, name=f"feature-only map seq {f.seq}")
+    name = f"feature-only map seq {f.seq}"
+    fmap = FeatureMap(f.dim, tuple(int(i) for i in frame), f.ids, f.state, f.info, name=name)
+    who = f"feature-only map {name!r}"
+    i = first_beyond(fmap.x, np.ones(fmap.x.size, dtype=bool), lim.max_coordinate)
+    if i is not None:
+        fault = beyond_message(f"coordinate at state index {i}", float(fmap.x[i]), "max_coordinate", lim)
+        raise InvalidMapError(f"{who}: {fault}")
+    check_information(fmap.info, who, lim)
     return FeatureMapMessage(fmap, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
 
 
@@ -344,14 +418,25 @@ def encode_chunk(graph: PoseGraph, seq: int, stamp: Stamp = Stamp()) -> Encoded:
     )
 
 
-def decode_chunk(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0) -> ChunkMessage:
+def decode_chunk(
+    labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0, limits: InputLimits | None = None
+) -> ChunkMessage:
     """Decode a pose-graph chunk message.
 
+    Args:
+        labels, sizes, data, data_offset: the message's layout and data.
+        limits: size and numeric bounds (default limits when None): ``max_chunk_edges`` from
+            the header, ``max_state_scalars`` for the local map the chunk makes (``p`` per pose
+            other than its frame pose) before the graph is built, the numbers by the graph's
+            validation.
+
     Raises:
-        MessageError: the layout does not follow the contract.
+        MessageError: the layout does not follow the contract, or a size is above its limit
+            (names the limit and the value).
         GraphError: the edges are invalid (see :class:`PoseGraph`; the message names
             ``pose-graph chunk <seq>``).
     """
+    lim = limits_or_default(limits)
     what = "pose_graph message"
     seg = _segments(labels, sizes, data, data_offset, CHUNK_SEGMENTS, what)
     h = _header(seg, _CHUNK_HEADER, what)
@@ -359,17 +444,25 @@ def decode_chunk(labels: Sequence[str], sizes: Sequence[int], data: FloatArray, 
         raise MessageError(f"{what}: map_kind must be {MAP_KIND_POSE_GRAPH} for a pose-graph chunk, got {h[2]}")
     dim, seq, k = int(h[1]), int(h[3]), int(h[6])
     what = f"pose_graph message seq {seq}"
+    _check_size("edges", k, "max_chunk_edges", lim, what)
     p = pose_size(dim)
     expected = {"edge_from": k, "edge_to": k, "measurement": k * p, "information": k * p * p}
     for name, size in expected.items():
         if seg[name].size != size:
             raise MessageError(f"{what}: segment {name!r} has {seg[name].size} values, {k} edges need {size}")
+    _check_finite(seg, what)
+    from_ids = _ints(seg["edge_from"], "edge_from", what)
+    to_ids = _ints(seg["edge_to"], "edge_to", what)
+    n_poses = int(np.union1d(from_ids, to_ids).size)
+    state = max(n_poses - 1, 0) * p  # the local map it makes: every pose but its frame pose
+    _check_size(f"state scalars (the local map of a chunk over {n_poses} poses)", state, "max_state_scalars", lim, what)
     graph = PoseGraph.from_edges(
-        _ints(seg["edge_from"], "edge_from", what),
-        _ints(seg["edge_to"], "edge_to", what),
+        from_ids,
+        to_ids,
         seg["measurement"].reshape(k, p).copy(),
         seg["information"].reshape(k, p, p).copy(),
         dim=dim,
         name=f"pose-graph chunk {seq}",
+        limits=lim,
     )
     return ChunkMessage(graph, seq, Stamp(int(h[4]), int(h[5])))

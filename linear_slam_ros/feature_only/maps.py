@@ -67,6 +67,8 @@ class FeatureMap:
     def __post_init__(self) -> None:
         k = n_frame_features(self.dim)
         who = f"feature-only map {self.name!r}"
+        if not self.frame_ids and not self.ids.size and not self.x.size and self.info.shape == (0, 0):
+            return  # the empty map: no feature, no frame (a joiner before its first map, after a reset)
         if len(self.frame_ids) != k or len(set(self.frame_ids)) != k:
             raise InvalidMapError(f"{who}: a {self.dim}D frame needs {k} distinct features, got {self.frame_ids}")
         if np.intersect1d(self.ids, np.array(self.frame_ids)).size:

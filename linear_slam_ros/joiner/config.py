@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.limits import NODE_LIMITS
 from linear_slam_ros.joiner.registry import methods
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
@@ -96,6 +97,36 @@ class JoinerConfig:
     initial_map: str = _param(
         "", "state file loaded at start-up, to continue mapping on it (ignored when state_dir holds a state)",
         read_only=True,
+    )
+    # Input limits (linear_slam_ros.core.limits.InputLimits, same names): a submap beyond one is rejected.
+    max_state_scalars: int = _param(
+        NODE_LIMITS.max_state_scalars,
+        "largest submap accepted, in state scalars (a pose-graph chunk: of the local map it makes); "
+        "checked from the message's sizes before anything is allocated", bounds=(1, 100_000_000),
+    )
+    max_info_triplets: int = _param(
+        NODE_LIMITS.max_info_triplets, "most information triplets (upper-triangle non-zeros) of one local_map message",
+        bounds=(1, 1_000_000_000),
+    )
+    max_chunk_edges: int = _param(NODE_LIMITS.max_chunk_edges, "most edges of one pose_graph chunk", bounds=(1, 100_000_000))
+    min_information: float = _param(
+        NODE_LIMITS.min_information, "smallest diagonal entry of a submap's or an edge's information (1/m^2, 1/rad^2)",
+        bounds=(1e-300, 1.0),
+    )
+    max_information: float = _param(
+        NODE_LIMITS.max_information, "largest diagonal entry of a submap's or an edge's information (1/m^2, 1/rad^2)",
+        bounds=(1.0, 1e300),
+    )
+    max_condition: float = _param(
+        NODE_LIMITS.max_condition,
+        "largest condition number of a submap's information (1-norm estimate) or an edge's (2-norm)", bounds=(1.0, 1e300),
+    )
+    max_angle: float = _param(
+        NODE_LIMITS.max_angle, "largest |angle| of a pose orientation or measured rotation, rad", bounds=(4.0, 1e9),
+    )
+    max_coordinate: float = _param(
+        NODE_LIMITS.max_coordinate, "largest |coordinate| of a position or measured translation, m (maps are robocentric)",
+        bounds=(1.0, 1e15),
     )
 
     @classmethod

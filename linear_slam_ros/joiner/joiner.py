@@ -305,7 +305,7 @@ class Joiner:
         t0 = time.perf_counter()
         try:
             self.state = join_step(self.state, submap, seq)
-        except LinearSlamError as exc:
+        except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"submap seq {seq} rejected: {exc}")
             return []
         self.join_seconds.append(time.perf_counter() - t0)

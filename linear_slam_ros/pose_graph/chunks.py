@@ -11,27 +11,35 @@ the χ² of the graph objective.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 
 import numpy as np
-import scipy.linalg
+import numpy.typing as npt
+import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError
-from linear_slam_ros.core.geometry import pose_size
-from linear_slam_ros.core.local_map import POSE, LocalMap, default_end_pose, fuse_repeated
-from linear_slam_ros.pose_graph.graph import IntArray, PoseGraph
+from linear_slam_ros.core.geometry import pose_size, wrap_angle
+from linear_slam_ros.core.limits import InputLimits
+from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, default_end_pose
+from linear_slam_ros.core.solvers import DENSE_MAX
+from linear_slam_ros.pose_graph.graph import FloatArray, IntArray, PoseGraph
 from linear_slam_ros.pose_graph.lago import lago
 
+logger = logging.getLogger(__name__)
 
-def star_chunk_to_local_map(graph: PoseGraph) -> LocalMap:
+
+def star_chunk_to_local_map(graph: PoseGraph, limits: InputLimits | None = None) -> LocalMap:
     """Return the pose-only local map of a star graph, in the frame of its centre pose.
 
     Args:
         graph: a graph whose edges all leave one pose.
+        limits: the numeric bounds the map is validated with (default limits when None).
 
     Returns:
         Every pose the edges reach, ``measurements`` as the estimate (m, rad) and the edges'
-        information on the block diagonal; repeated edges to one pose are fused. The map's
+        information on the block diagonal (dense up to ``DENSE_MAX`` scalars, else CSR: never
+        densified); repeated edges to one pose are fused (:func:`fuse_star_edges`). The map's
         end pose is :func:`linear_slam_ros.core.local_map.default_end_pose`; its name is the
         graph's.
 
@@ -44,25 +52,80 @@ def star_chunk_to_local_map(graph: PoseGraph) -> LocalMap:
             "it needs a closed-form estimate (LAGO) first"
         )
     frame = int(graph.from_ids[0])
-    p = pose_size(graph.dim)
-    kinds = np.full(graph.n_edges, POSE, dtype=np.int8)
-    info = scipy.linalg.block_diag(*graph.information)
-    ids, kinds, values, info = graph.to_ids.astype(np.int64), kinds, graph.measurements.reshape(-1), info
-    name = graph.name
-    if np.unique(ids).size != ids.size:
-        ids, kinds, values, info = fuse_repeated(name, graph.dim, ids, kinds, values, info)
-    assert values.size == ids.size * p
+    ids, values, blocks = fuse_star_edges(graph)
+    kinds = np.full(ids.size, POSE, dtype=np.int8)
+    info = block_diagonal(blocks)
+    return _checked_map(graph.dim, frame, default_end_pose(frame, ids), ids, kinds, values.reshape(-1), info, graph.name, limits)
+
+
+def fuse_star_edges(graph: PoseGraph) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Return the poses of a star graph with repeated edges fused: ids, ``(m, p)`` values and
+    ``(m, p, p)`` information blocks, in first-appearance order.
+
+    Edges to one pose are independent observations of it: the fused one has information
+    ``I = sum_k I_k`` and value ``I^-1 sum_k I_k z_k``, each repeat's angles taken next to the
+    first's (``2 pi`` wrapped) — exactly :func:`linear_slam_ros.core.local_map.fuse_repeated`
+    on the block-diagonal information, computed block by block.
+    """
+    to = graph.to_ids
+    uniq, first, inverse = np.unique(to, return_index=True, return_inverse=True)
+    if uniq.size == to.size:
+        return to.astype(np.int64), graph.measurements, graph.information
+    order = np.argsort(first)  # keep first-appearance order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    target = rank[inverse]  # fused pose index of each edge
+    d, p = graph.dim, pose_size(graph.dim)
+    z = graph.measurements.copy()
+    reference = z[first[order][target]]  # the first edge to the same pose
+    z[:, d:] = reference[:, d:] + wrap_angle(z[:, d:] - reference[:, d:])
+    info = np.zeros((uniq.size, p, p))
+    np.add.at(info, target, graph.information)
+    eta = np.zeros((uniq.size, p))
+    np.add.at(eta, target, np.einsum("kij,kj->ki", graph.information, z))
+    values = np.asarray(np.linalg.solve(info, eta[..., None])[..., 0], dtype=np.float64)
+    logger.warning("%s: fused %d repeated variable(s) into one each", graph.name, to.size - uniq.size)
+    return to[first[order]].astype(np.int64), values, 0.5 * (info + np.swapaxes(info, 1, 2))
+
+
+def block_diagonal(blocks: FloatArray) -> InfoMatrix:
+    """Return the block-diagonal matrix of ``(m, p, p)`` blocks: dense up to ``DENSE_MAX``
+    scalars, CSR above (built from the blocks' entries, never densified)."""
+    m, p, _ = blocks.shape
+    n = m * p
+    index = np.arange(n).reshape(m, p)
+    rows = np.repeat(index, p, axis=1).ravel()  # block b, row i, column j -> b*p + i
+    cols = np.tile(index, (1, p)).ravel()  # -> b*p + j
+    matrix = sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))
+    if n <= DENSE_MAX:
+        return matrix.toarray()
+    matrix.eliminate_zeros()  # the structure sp.csr_matrix(dense) would have
+    return matrix
+
+
+def _checked_map(
+    dim: int, frame: int, end: int | None, ids: IntArray, kinds: npt.NDArray[np.int8], x: FloatArray, info: InfoMatrix,
+    name: str,
+    limits: InputLimits | None,
+) -> LocalMap:
+    """Return a local map validated with ``limits``; an invalid one raises :class:`GraphError`."""
+    local = LocalMap.trusted(
+        dim, frame, end, np.ascontiguousarray(ids, dtype=np.int64), np.ascontiguousarray(kinds, dtype=np.int8),
+        np.ascontiguousarray(x, dtype=np.float64), info, name=name,
+    )
     try:
-        return LocalMap(graph.dim, frame, default_end_pose(frame, ids), ids, kinds, values, info, name=name)
+        local.validate(limits)
     except InvalidMapError as exc:
         raise GraphError(str(exc)) from None
+    return local
 
 
-def lago_local_map(graph: PoseGraph) -> LocalMap:
+def lago_local_map(graph: PoseGraph, limits: InputLimits | None = None) -> LocalMap:
     """Return the pose-only local map of a 2D graph by LAGO, in its first edge's ``from`` frame.
 
     Args:
         graph: a connected 2D graph.
+        limits: the numeric bounds the map is validated with (default limits when None).
 
     Returns:
         Every other pose of the graph estimated by :func:`linear_slam_ros.pose_graph.lago.lago`
@@ -71,31 +134,32 @@ def lago_local_map(graph: PoseGraph) -> LocalMap:
         ``" (LAGO)"``.
 
     Raises:
-        GraphError: the graph is 3D, or disconnected.
+        GraphError: the graph is 3D, or disconnected, or its map is invalid.
     """
     if graph.dim != 2:
         raise GraphError(f"{graph.name}: LAGO is 2D only; this chunk is {graph.dim}D and not a star")
     frame = int(graph.from_ids[0])
     result = lago(graph, anchor_id=frame).map
     end = chunk_end_pose(graph.from_ids, graph.to_ids, frame)
-    return LocalMap(
+    return _checked_map(
         2, frame, end if end != frame else None, result.ids, result.kinds, result.x, result.info,
-        name=f"{graph.name} (LAGO)",
+        f"{graph.name} (LAGO)", limits,
     )
 
 
-def chunk_to_local_map(graph: PoseGraph) -> LocalMap:
+def chunk_to_local_map(graph: PoseGraph, limits: InputLimits | None = None) -> LocalMap:
     """Return the pose-only local map of a graph, in the frame of its first edge's ``from`` pose.
 
     Star graphs convert exactly (:func:`star_chunk_to_local_map`); other 2D graphs go through
-    LAGO (:func:`lago_local_map`).
+    LAGO (:func:`lago_local_map`). The map is validated with ``limits`` (default limits when
+    None).
 
     Raises:
         GraphError: the graph cannot be converted (the message says why).
     """
     if graph.is_star:
-        return star_chunk_to_local_map(graph)
-    return lago_local_map(graph)
+        return star_chunk_to_local_map(graph, limits)
+    return lago_local_map(graph, limits)
 
 
 def edge_maps(graph: PoseGraph) -> list[LocalMap]:

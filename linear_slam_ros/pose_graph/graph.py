@@ -19,6 +19,13 @@ import scipy.linalg
 
 from linear_slam_ros.core.errors import GraphError
 from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.limits import (
+    InputLimits,
+    beyond_message,
+    condition_fault,
+    information_diagonal_fault,
+    limits_or_default,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -63,6 +70,20 @@ class PoseGraph:
     name: str = DEFAULT_NAME
 
     def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self, limits: InputLimits | None = None) -> None:
+        """Check every invariant (construction does, with the default limits).
+
+        Besides the structure, the numbers must be joinable in double precision (``limits``,
+        default :data:`linear_slam_ros.core.limits.DEFAULT_LIMITS`): measured angles within
+        ``max_angle``, translations within ``max_coordinate``, and each edge's information
+        with its diagonal in ``[min_information, max_information]`` and its condition number
+        (2-norm) at most ``max_condition``.
+
+        Raises:
+            GraphError: the first fault, naming the graph and the edge.
+        """
         who = self.name
         if self.dim not in (2, 3):
             raise GraphError(f"{who}: dimension must be 2 or 3, got {self.dim}")
@@ -87,7 +108,23 @@ class PoseGraph:
             raise GraphError(f"{who}: edge {int(loops[0])} connects pose {int(self.from_ids[loops[0]])} to itself")
         if not (np.all(np.isfinite(self.measurements)) and np.all(np.isfinite(self.information))):
             raise GraphError(f"{who}: non-finite measurement or information")
-        self._check_information()
+        lim = limits_or_default(limits)
+        self._check_measurements(lim)
+        self._check_information(lim)
+
+    def _check_measurements(self, limits: InputLimits) -> None:
+        """Raise :class:`GraphError` at the first measured translation beyond ``max_coordinate``
+        or angle beyond ``max_angle``."""
+        d = self.dim
+        for part, what, limit_name in (
+            (self.measurements[:, :d], "translation", "max_coordinate"),
+            (self.measurements[:, d:], "angle", "max_angle"),
+        ):
+            bad = np.argwhere(np.abs(part) > float(getattr(limits, limit_name)))
+            if bad.size:
+                e, c = (int(v) for v in bad[0])
+                where = f"measurement of edge {e} ({self._edge(e)}): {what} {c}"
+                raise GraphError(f"{self.name}: {beyond_message(where, float(part[e, c]), limit_name, limits)}")
 
     def _check_known_poses(self) -> None:
         """Raise :class:`GraphError` when an edge names a pose missing from ``pose_ids``."""
@@ -100,20 +137,43 @@ class PoseGraph:
                 f"{f' (and {unknown.size - 1} more)' if unknown.size > 1 else ''}"
             )
 
-    def _check_information(self) -> None:
+    def _check_information(self, limits: InputLimits) -> None:
         """Raise :class:`GraphError` at the first edge whose information is not symmetric
-        (relative tolerance 1e-9) or not positive definite (no Cholesky factor)."""
+        (relative tolerance 1e-9), not positive definite (no Cholesky factor), has a diagonal
+        entry outside the magnitude bounds or a condition number above ``max_condition``.
+
+        Every edge is checked at once (stacked LAPACK calls); the edge at fault is then named.
+        """
         info = self.information
         transposed = np.swapaxes(info, -1, -2)
         # np.allclose(block, block.T, rtol, atol=0) of every block at once
         symmetric = np.all(np.abs(info - transposed) <= _SYMMETRY_RTOL * np.abs(transposed), axis=(1, 2))
-        for e in range(self.n_edges):
-            if not symmetric[e]:
-                raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}) is not symmetric")
-            try:
-                scipy.linalg.cholesky(info[e])
-            except np.linalg.LinAlgError:
-                raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}) is not positive definite") from None
+        try:
+            np.linalg.cholesky(info)
+            definite = np.ones(self.n_edges, dtype=bool)
+        except np.linalg.LinAlgError:  # find which (rare: a faulty message)
+            definite = np.array([_has_cholesky(block) for block in info], dtype=bool)
+        bad = np.flatnonzero(~(symmetric & definite))
+        if bad.size:
+            e = int(bad[0])
+            property_ = "not symmetric" if not symmetric[e] else "not positive definite"
+            raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}) is {property_}")
+        p = info.shape[1]
+        diagonals = info[:, np.arange(p), np.arange(p)]
+        out = np.flatnonzero(np.any((diagonals < limits.min_information) | (diagonals > limits.max_information), axis=1))
+        if out.size:
+            e = int(out[0])
+            fault = information_diagonal_fault(diagonals[e], limits)
+            raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}): {fault or ''}")
+        eigenvalues = np.linalg.eigvalsh(info)  # ascending, per edge
+        smallest, largest = eigenvalues[:, 0], eigenvalues[:, -1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            condition = np.where(smallest > 0, largest / smallest, np.inf)
+        ill = np.flatnonzero(~(condition <= limits.max_condition))
+        if ill.size:
+            e = int(ill[0])
+            fault = condition_fault(float(condition[e]), "2-norm", limits)
+            raise GraphError(f"{self.name}: information of edge {e} ({self._edge(e)}): {fault or ''}")
 
     def _edge(self, e: int) -> str:
         return f"{int(self.from_ids[e])}->{int(self.to_ids[e])}"
@@ -129,6 +189,7 @@ class PoseGraph:
         *,
         dim: int | None = None,
         name: str = DEFAULT_NAME,
+        limits: InputLimits | None = None,
     ) -> PoseGraph:
         """Build a graph from array-likes (ids as int64, values as float64).
 
@@ -141,6 +202,7 @@ class PoseGraph:
                 must name two of them. Default: the poses the edges name.
             dim: 2 or 3. Default: 3 when ``measurements`` has 6 columns, else 2.
             name: what the graph is, for messages.
+            limits: the numeric bounds of :meth:`validate` (default limits when None).
 
         Raises:
             GraphError: shapes do not match, an edge names an unknown pose, or another
@@ -153,7 +215,12 @@ class PoseGraph:
         if dim is None:
             dim = 3 if z.ndim == 2 and z.shape[1] == pose_size(3) else 2
         poses = np.union1d(f, t) if pose_ids is None else np.unique(np.asarray(pose_ids, dtype=np.int64))
-        return cls(dim, f, t, z, info, poses, name)
+        graph = object.__new__(cls)  # the fields as they are, then one validation with ``limits``
+        for field, value in (("dim", dim), ("from_ids", f), ("to_ids", t), ("measurements", z), ("information", info),
+                             ("pose_ids", poses), ("name", name)):
+            object.__setattr__(graph, field, value)
+        graph.validate(limits)
+        return graph
 
     @property
     def n_edges(self) -> int:
@@ -169,3 +236,11 @@ class PoseGraph:
     def is_star(self) -> bool:
         """Whether every edge leaves the same pose (then the graph is a pose-only local map)."""
         return bool(np.all(self.from_ids == self.from_ids[0]))
+
+
+def _has_cholesky(block: FloatArray) -> bool:
+    try:
+        scipy.linalg.cholesky(block)
+    except np.linalg.LinAlgError:
+        return False
+    return True

@@ -35,7 +35,7 @@ import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -100,7 +100,7 @@ class Diagnostics:
         """Submaps joined or rejected, by the newest status (0 before the first)."""
         return int(self.values.get("n_joined", 0) + self.values.get("n_rejected", 0))
 
-    def wait(self, done: Any, timeout_s: float, process: subprocess.Popen[Any]) -> None:
+    def wait(self, done: Callable[[], bool], timeout_s: float, process: subprocess.Popen[Any]) -> None:
         """Spin until ``done()``; raise if the process exits or ``timeout_s`` passes first."""
 
         def check() -> bool:
@@ -156,6 +156,7 @@ class JoinerRun:
             self.process = subprocess.Popen(cmd, env=dict(os.environ), stdout=out, stderr=subprocess.STDOUT)
 
     def topic(self, name: str) -> str:
+        """Return the full name of one of this joiner's topics."""
         return f"/{self.namespace}/{name}"
 
     def global_map(self, node: Node) -> LatestMessage[MapMessage]:
@@ -169,6 +170,7 @@ class JoinerRun:
         return code, time.monotonic() - t0
 
     def output(self) -> str:
+        """Return what the process wrote (stdout and stderr) so far."""
         return self.log.read_text(errors="replace") if self.log.exists() else ""
 
 
@@ -311,7 +313,7 @@ def bench_dataset(node: Node, archive: Path, args: argparse.Namespace) -> dict[s
             # The final snapshot at Ctrl-C, estimated as the extra time the stop took.
             "final_snapshot_s_est": persisted["stop_s"] - baseline["stop_s"],
         })
-        print(f"  -> {table_rows(name, runs[-1])[0]}", flush=True)
+        print(f"  -> {table_row(name, runs[-1])}", flush=True)
     restore_target = TARGET_RESTORE_S.get(name)
     return {
         "dataset": name,
@@ -327,41 +329,47 @@ def bench_dataset(node: Node, archive: Path, args: argparse.Namespace) -> dict[s
 
 
 HEADER = (
-    "| dataset | run | join s (no state / state) | journal s | snapshot s | (journal+snapshot)/join | final snapshot s (stop) "
-    "| end-to-end s (no state / state) | restore s (diag / log) | restore: start to map s | state_dir MB |\n"
+    "| dataset | run | join s (no state / state) | journal s | snapshot s | (journal+snapshot)/join "
+    "| Ctrl-C stop s (state / no state) | end-to-end s (no state / state) | restore s (diag / log) | restart to map s "
+    "| state_dir MB |\n"
     "|---|---|---|---|---|---|---|---|---|---|---|"
 )
 
 
-def table_rows(name: str, r: dict[str, Any]) -> list[str]:
+def table_row(name: str, r: dict[str, Any]) -> str:
+    """Return the markdown table row of one repetition."""
     b, p, s = r["baseline"], r["persisted"], r["restore"]
     log_s = "–" if s["resumed_log_s"] is None else f"{s['resumed_log_s']:.2f}"
-    return [
+    return (
         f"| {name} | {r['repetition']} | {b['join_seconds_total']:.2f} / {p['join_seconds_total']:.2f} "
         f"| {p['journal_seconds_total']:.3f} | {p['snapshot_seconds_total']:.3f} | {r['ratio']:.3f} "
-        f"| {p['stop_s']:.2f} (baseline {b['stop_s']:.2f}) | {b['end_to_end_s']:.1f} / {p['end_to_end_s']:.1f} "
+        f"| {p['stop_s']:.2f} / {b['stop_s']:.2f} | {b['end_to_end_s']:.1f} / {p['end_to_end_s']:.1f} "
         f"| {s['restore_seconds_total']:.2f} / {log_s} | {s['start_to_map_s']:.1f} | {p['state_dir_bytes'] / 1e6:.1f} |"
-    ]
+    )
 
 
 def markdown(results: list[dict[str, Any]], command: str) -> str:
+    """Return ``persistence.md``: the table of every repetition, then the targets per dataset."""
     lines = [
         "# Persistence cost of the joiner node",
         "",
         f"`{command}`; {MODE_NOTE}. Default `snapshot_period`; bags replayed at full speed; "
         f"summary_period {SUMMARY_PERIOD_S} s. Seconds: join, journal, snapshot and restore as the node counts them; "
-        "end-to-end: first submap published to the global map with every submap received; final snapshot: the Ctrl-C "
-        "stop of the joiner with state_dir (baseline: the stop without).",
+        "journal and snapshot s: the joiner's `/diagnostics` after the last submap (start-up and periodic snapshots; the "
+        "final snapshot is in the Ctrl-C stop time, which the stop without state_dir bounds from below); end-to-end: "
+        "first submap published to the global map with every submap received; restore s: `restore_seconds_total` and "
+        "the `resumed from ... in X s` log line; restart to map: process start to the restored global map received.",
         "",
         HEADER,
     ]
     notes = []
     for res in results:
-        if "skipped" in res:
-            notes.append(f"- {res['dataset']}: skipped ({res['skipped']})")
+        if "skipped" in res or "failed" in res:
+            what = "skipped" if "skipped" in res else "failed"
+            notes.append(f"- {res['dataset']}: {what} ({res[what]})")
             continue
         for r in res["runs"]:
-            lines += table_rows(res["dataset"], r)
+            lines.append(table_row(res["dataset"], r))
         ratios = ", ".join(f"{r['ratio']:.3f}" for r in res["runs"])
         notes.append(
             f"- {res['dataset']} ({res['n_submaps']} submaps): (journal+snapshot)/join {ratios} "
@@ -428,7 +436,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "datasets": results,
     }
     (args.out / "persistence.json").write_text(json.dumps(report, indent=2) + "\n")
-    text = markdown([r for r in results if "failed" not in r], command)
+    text = markdown(results, command)
     (args.out / "persistence.md").write_text(text)
     print(text)
     return 1 if failed else 0

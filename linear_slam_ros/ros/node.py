@@ -29,6 +29,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageError
+from linear_slam_ros.core.limits import LIMIT_NAMES, InputLimits
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.io.results import write_map
@@ -83,8 +84,8 @@ class JoinerNode(Node):
         )
         self.joiner.on_reject = self._on_reject
         self.n_received = 0
-        self._version = 0  # bumped on every state change; the publisher compares it
-        self._published_version = -1
+        self._version = 0  # bumped on every state change (join, rejection, reset, load); the publisher compares it
+        self._published_version = 0  # nothing to publish before the first change
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
         self._next_publish = 0.0
 
@@ -157,7 +158,7 @@ class JoinerNode(Node):
         """Decode an inbound message, journal it (with ``state_dir``), then offer it to the joiner."""
         self.n_received += 1
         try:
-            submap, seq = _decode(topic, raw)
+            submap, seq = _decode(topic, raw, _limits(self.config))
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
@@ -166,7 +167,7 @@ class JoinerNode(Node):
     def _replay(self, topic: str, raw: bytes) -> None:
         """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
         try:
-            submap, seq = _decode(topic, raw)
+            submap, seq = _decode(topic, raw, _limits(self.config))
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
             self._journal_records += 1
@@ -272,6 +273,7 @@ class JoinerNode(Node):
         if self.store is not None and self.store.has_state():
             recovery = self.store.recover(self.joiner, self._replay)
             self._journal_records = recovery.snapshot_records + recovery.replayed
+            self._version += 1  # publish the resumed map at once
             self.get_logger().info(
                 f"resumed from {recovery.snapshot or 'an empty map'} and {recovery.replayed} journal record(s) in "
                 f"{recovery.seconds:.2f} s: {self.joiner.state.n_joined} submaps joined"
@@ -367,7 +369,8 @@ class JoinerNode(Node):
         config = self.config
         stamp = self.get_clock().now().to_msg()
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
-            self.pub_global.publish(to_msg(encode_empty_global(state.last_seq or 0, self._stamp(), stats)))
+            empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
+            self.pub_global.publish(to_msg(empty))
             views = empty_views(config.map_frame, stamp)
         else:
             joined = global_result(state, config.output_frame)
@@ -401,21 +404,30 @@ class JoinerNode(Node):
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 
-def _decode(topic: str, raw: bytes) -> tuple[LocalMap, int]:
+def _limits(config: JoinerConfig) -> InputLimits:
+    """Return the input limits of the node's ``max_*``/``min_*`` parameters (same names)."""
+    return InputLimits(**{name: getattr(config, name) for name in LIMIT_NAMES})
+
+
+def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int]:
     """Decode the raw CDR of a ``local_map`` or ``pose_graph`` message into a local map and its sequence number.
 
+    Sizes beyond ``limits`` are refused from the message's layout before anything is allocated;
+    the numbers are checked by the validation of the decoded map or graph and of the chunk's map.
+
     Raises:
-        MessageError: the bytes are not a Float64MultiArray, or it does not follow the layout.
-        LinearSlamError: the map or pose graph it carries is invalid.
+        MessageError: the bytes are not a Float64MultiArray, it does not follow the layout, or
+            a size is above its limit.
+        LinearSlamError: the map or pose graph it carries is invalid (a numeric limit included).
     """
     try:
         msg = deserialize_message(raw, Float64MultiArray)
     except Exception as exc:  # rclpy raises plain exceptions for bad CDR
         raise MessageError(f"not a serialized std_msgs/Float64MultiArray ({type(exc).__name__}: {exc})") from None
     if topic == "pose_graph":
-        chunk = decode_chunk(*parts(msg))
-        return chunk_to_local_map(chunk.graph), chunk.seq
-    decoded = decode_map(*parts(msg))
+        chunk = decode_chunk(*parts(msg), limits=limits)
+        return chunk_to_local_map(chunk.graph, limits), chunk.seq
+    decoded = decode_map(*parts(msg), limits=limits)
     return decoded.local_map, decoded.seq
 
 

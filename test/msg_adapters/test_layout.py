@@ -2,12 +2,23 @@
 
 from __future__ import annotations
 
+import inspect
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError, MessageError
+from linear_slam_ros.core.limits import NODE_LIMITS, InputLimits
+from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
+from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
 from linear_slam_ros.pose_graph.graph import PoseGraph
 from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
@@ -206,3 +217,251 @@ def test_feature_only_and_pose_frame_messages_are_not_confused(rng):
     data[sum(enc.sizes[:f]) + 1] = data[sum(enc.sizes[:f])]  # F_X == F_O
     with pytest.raises(InvalidMapError, match="a 2D frame needs 2 distinct features"):
         decode_feature_map(enc.labels, enc.sizes, data)
+
+
+# ---------------------------------------------------------------------------------------- input limits
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _raw_map(n_features: int, vals=None, seq: int = 5):
+    """The layout, sizes and data of a feature map message with diagonal information, built directly."""
+    n = 2 * n_features
+    segments = [
+        ("header", [1, 2, 0, seq, 0, 0, 0, -1, 1]),
+        ("var_ids", np.arange(1, n_features + 1)),
+        ("var_kinds", np.ones(n_features)),
+        ("state", np.zeros(n)),
+        ("info_rows", np.arange(n)),
+        ("info_cols", np.arange(n)),
+        ("info_vals", np.full(n, 100.0) if vals is None else vals),
+    ]
+    arrays = [np.asarray(v, dtype=float) for _, v in segments]
+    return [k for k, _ in segments], [a.size for a in arrays], np.concatenate(arrays)
+
+
+def _raw_chunk(k: int, seq: int = 4, to=None):
+    """The layout, sizes and data of a 2D star chunk of ``k`` edges from pose 0, built directly."""
+    segments = [
+        ("header", [1, 2, 2, seq, 0, 0, k]),
+        ("edge_from", np.zeros(k)),
+        ("edge_to", np.arange(1, k + 1) if to is None else to),
+        ("measurement", np.tile([1.0, 0.0, 0.1], k)),
+        ("information", np.tile(np.eye(3).ravel() * 100.0, k)),
+    ]
+    arrays = [np.asarray(v, dtype=float) for _, v in segments]
+    return [s for s, _ in segments], [a.size for a in arrays], np.concatenate(arrays)
+
+
+def _in_fresh_process(body: str, *helpers) -> dict:
+    """Run ``body`` (which sets ``message`` and ``run``, and may call ``helpers``) in a new
+    interpreter; return the seconds and the peak-RSS growth (MB, ``resource.getrusage``) of
+    ``run()`` and the error it raised."""
+    sources = "import numpy as np\n" + "".join(inspect.getsource(h) for h in helpers)
+    script = sources + textwrap.dedent(body) + textwrap.dedent("""
+        import json, resource, time
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        t0 = time.perf_counter()
+        try:
+            run()
+            error = None
+        except Exception as exc:
+            error = f"{type(exc).__name__}: {exc}"
+        seconds = time.perf_counter() - t0
+        growth = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+        print(json.dumps({"seconds": seconds, "growth_mb": growth, "error": error}))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=300, check=False)
+    assert result.returncode == 0, result.stderr[-2000:]
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("limits, bound", [("None", 100_000), ("NODE_LIMITS", 5_000)])
+def test_a_map_of_a_million_scalars_is_refused_from_its_sizes(limits, bound):
+    """It used to be densified (7.28 TiB) by sequential joining; now its header and sizes refuse it."""
+    out = _in_fresh_process(f"""
+        from linear_slam_ros.core.limits import NODE_LIMITS
+        from msg_adapters import decode_map
+        message = _raw_map(500_000)
+        def run():
+            decode_map(*message, limits={limits})
+    """, _raw_map)
+    assert out["error"] == f"MessageError: map message seq 5: 1000000 state scalars, above the limit max_state_scalars = {bound}"
+    assert out["seconds"] < 1.0 and out["growth_mb"] < 200
+
+
+def test_a_chunk_of_100000_edges_is_refused_from_its_header():
+    """It used to be made a dense block diagonal (671 GiB); now its header refuses it."""
+    out = _in_fresh_process("""
+        from msg_adapters import decode_chunk
+        message = _raw_chunk(100_000)
+        def run():
+            decode_chunk(*message)
+    """, _raw_chunk)
+    assert out["error"] == "MessageError: pose_graph message seq 4: 100000 edges, above the limit max_chunk_edges = 10000"
+    assert out["seconds"] < 1.0 and out["growth_mb"] < 200
+
+
+def test_a_star_chunk_allowed_100000_edges_becomes_a_sparse_map_in_bounded_memory():
+    """With limits raised to admit it, the star chunk's block-diagonal information is built sparse."""
+    out = _in_fresh_process("""
+        import scipy.sparse as sp
+        from linear_slam_ros.core.limits import InputLimits
+        from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+        from msg_adapters import decode_chunk
+        message = _raw_chunk(100_000)
+        limits = InputLimits(max_chunk_edges=100_000, max_state_scalars=300_000)
+        def run():
+            local = chunk_to_local_map(decode_chunk(*message, limits=limits).graph, limits)
+            assert local.state_dim == 300_000 and sp.issparse(local.info) and local.info.nnz == 300_000
+    """, _raw_chunk)
+    assert out["error"] is None
+    assert out["seconds"] < 10.0 and out["growth_mb"] < 400
+
+
+def test_map_size_limits_are_checked_before_decoding():
+    small = InputLimits(max_state_scalars=10, max_info_triplets=8)
+    decode_map(*_raw_map(4), limits=small)  # 8 scalars, 8 triplets: fine
+    with pytest.raises(MessageError, match="^map message seq 5: 12 state scalars, above the limit max_state_scalars = 10$"):
+        decode_map(*_raw_map(6), limits=small)
+    match = "^map message seq 5: 10 information triplets \\(segment 'info_rows'\\), above the limit max_info_triplets = 8$"
+    with pytest.raises(MessageError, match=match):
+        decode_map(*_raw_map(5), limits=small)
+    labels, sizes, data = _raw_map(1)
+    header = data[:9]
+    many_ids = (labels, [9, 11, 11, 2, 1, 1, 1], np.r_[header, np.arange(11), np.ones(11), 0, 0, 0, 0, 100])
+    match = "^map message seq 5: 11 values in segment 'var_ids', above the limit max_state_scalars = 10$"
+    with pytest.raises(MessageError, match=match):
+        decode_map(*many_ids, limits=small)
+    # more triplets than the upper triangle has entries: some repeat, whatever the limit
+    repeated = (labels, [9, 1, 1, 2, 4, 4, 4], np.r_[header, 1, 1, 0, 0, [0, 0, 1, 0], [0, 1, 1, 0], [1, 0, 1, 1]])
+    match = "^map message seq 5: 4 information triplets, more than the 3 entries of the upper triangle"
+    with pytest.raises(MessageError, match=match):
+        decode_map(*repeated)
+    with pytest.raises(MessageError, match="negative segment size in layout \\[9, -1, 3"):
+        decode_map(labels, [9, -1, 3, 2, 2, 2, 2], data)
+
+
+def test_chunk_size_limits_are_checked_before_the_graph_is_built():
+    limits = InputLimits(max_chunk_edges=3, max_state_scalars=6)
+    decode_chunk(*_raw_chunk(2), limits=limits)
+    with pytest.raises(MessageError, match="^pose_graph message seq 4: 4 edges, above the limit max_chunk_edges = 3$"):
+        decode_chunk(*_raw_chunk(4), limits=limits)
+    match = "^pose_graph message seq 4: 9 state scalars \\(the local map of a chunk over 4 poses\\), above the limit "
+    with pytest.raises(MessageError, match=match + "max_state_scalars = 6$"):
+        decode_chunk(*_raw_chunk(3), limits=limits)
+    decode_chunk(*_raw_chunk(3, to=[1, 2, 1]), limits=limits)  # 3 poses: 6 scalars
+
+
+@pytest.mark.parametrize(
+    "value, match",
+    [
+        (1e300, "information diagonal entry 3 \\(feature 2\\) is 1e\\+300, above the limit max_information = 1e\\+12"),
+        (1e-300, "information diagonal entry 3 \\(feature 2\\) is 1e-300, below the limit min_information = 1e-12"),
+    ],
+)
+def test_map_information_magnitudes_are_rejected(value, match):
+    with pytest.raises(InvalidMapError, match=f"^local map 'local map seq 5': {match}$"):
+        decode_map(*_raw_map(2, vals=[100.0, 100.0, 100.0, value]))
+    with pytest.raises(InvalidMapError, match=match):
+        decode_map(*_raw_map(2, vals=[100.0, 100.0, 100.0, value]), limits=NODE_LIMITS)
+
+
+def _state_message(x):
+    m = LocalMap(2, 0, 1, np.array([1, 7]), np.array([0, 1], np.int8), np.array([1.0, 0.0, 0.1, 2.0, 1.0]), np.eye(5) * 100)
+    return _mutate(encode_map(m, 3), "state", x)
+
+
+def test_map_angles_and_coordinates_are_bounded():
+    match = "^local map 'local map seq 3': angle at state index 2 \\(pose 1\\) is 1e\\+300 rad, beyond the limit "
+    with pytest.raises(InvalidMapError, match=match + "max_angle = 10000 rad$"):
+        decode_map(*_state_message([1.0, 0.0, 1e300, 2.0, 1.0]))
+    match = "coordinate at state index 3 \\(feature 7\\) is -1e\\+300 m, beyond the limit max_coordinate = 1e\\+06 m$"
+    with pytest.raises(InvalidMapError, match=match):
+        decode_map(*_state_message([1.0, 0.0, 0.1, -1e300, 1.0]))
+    decode_map(*_state_message([1.0, 0.0, 7.0, 2.0, 1.0]))  # an unwrapped angle is fine
+    match = "angle at state index 2 \\(pose 1\\) is 7 rad, beyond the limit max_angle = 5 rad$"
+    with pytest.raises(InvalidMapError, match=match):
+        decode_map(*_state_message([1.0, 0.0, 7.0, 2.0, 1.0]), limits=InputLimits(max_angle=5.0))
+
+
+def _mutate_enc(enc, segment, values):
+    labels, sizes, data = _mutate(enc, segment, values)
+    return type(enc)(tuple(labels), tuple(sizes), data)
+
+
+def _chunk_message(over):
+    """A star chunk 3->4, 3->7 (seq 6) with entries overridden: ``{(edge, row, col): value}`` of the
+    information, ``{(edge, -1, component): value}`` of the measurement."""
+    info = np.stack([np.eye(3) * 100.0, np.eye(3) * 200.0])
+    z = np.array([[1.0, 0.0, 0.1], [2.0, 1.0, -0.2]])
+    for (edge, row, col), value in over.items():
+        if row < 0:
+            z[edge, col] = value
+        else:
+            info[edge, row, col] = value
+    enc = encode_chunk(PoseGraph.from_edges([3, 3], [4, 7], np.ones((2, 3)), np.stack([np.eye(3)] * 2)), 6)
+    return _mutate(_mutate_enc(enc, "measurement", z.ravel()), "information", info.ravel())
+
+
+@pytest.mark.parametrize(
+    "over, match",
+    [
+        ({(1, 2, 2): 1e300},
+         "information of edge 1 \\(3->7\\): information diagonal entry 2 is 1e\\+300, above the limit max_information = 1e\\+12"),
+        ({(0, 0, 0): 1e-300},
+         "information of edge 0 \\(3->4\\): information diagonal entry 0 is 1e-300, below the limit min_information = 1e-12"),
+        ({(1, -1, 2): 1e300},
+         "measurement of edge 1 \\(3->7\\): angle 0 is 1e\\+300 rad, beyond the limit max_angle = 10000 rad"),
+        ({(0, -1, 1): -1e300},
+         "measurement of edge 0 \\(3->4\\): translation 1 is -1e\\+300 m, beyond the limit max_coordinate = 1e\\+06 m"),
+        ({(0, 0, 0): 1e12, (0, 1, 1): 1e-3},
+         "information of edge 0 \\(3->4\\): information matrix is too ill-conditioned to join in double precision: "
+         "condition number 1e\\+15 \\(2-norm\\)"),
+    ],
+)
+def test_chunk_numbers_are_bounded(over, match):
+    with pytest.raises(GraphError, match=f"^pose-graph chunk 6: {match}"):
+        decode_chunk(*_chunk_message(over))
+
+
+def test_chunk_limits_reach_the_local_map_it_makes():
+    """Fusing parallel edges adds their information: the map is checked with the same limits."""
+    limits = InputLimits(max_information=250.0)
+    z = np.array([[1.0, 0, 0.1], [1.2, 0, 0.1]])
+    enc = encode_chunk(PoseGraph.from_edges([3, 3], [4, 4], z, np.stack([np.eye(3) * 200.0] * 2)), 2)
+    chunk = decode_chunk(enc.labels, enc.sizes, enc.data, limits=limits)
+    assert chunk_to_local_map(chunk.graph).info_dense()[0, 0] == 400.0  # default limits
+    match = "^local map 'pose-graph chunk 2': information diagonal entry 0 \\(pose 4\\) is 400, above the limit "
+    with pytest.raises(GraphError, match=match + "max_information = 250$"):
+        chunk_to_local_map(chunk.graph, limits)
+
+
+def test_feature_only_map_limits(rng):
+    from msg_adapters import decode_feature_map, encode_feature_map
+
+    fmap = _feature_map(2, rng)
+    enc = encode_feature_map(fmap, 9)
+    match = f"^map message seq 9: {fmap.x.size} state scalars, above the limit max_state_scalars = 10$"
+    with pytest.raises(MessageError, match=match):
+        decode_feature_map(enc.labels, enc.sizes, enc.data, limits=InputLimits(max_state_scalars=10))
+    who = "^feature-only map 'feature-only map seq 9': "
+    k = enc.labels.index("state")
+    data = enc.data.copy()
+    data[sum(enc.sizes[:k]) + 1] = 1e300
+    with pytest.raises(InvalidMapError, match=who + "coordinate at state index 1 is 1e\\+300 m, beyond the limit max_coordinate"):
+        decode_feature_map(enc.labels, enc.sizes, data)
+    v = enc.labels.index("info_vals")
+    data = enc.data.copy()
+    data[sum(enc.sizes[:v])] = 1e300  # the first triplet is a diagonal entry (0, 0)
+    with pytest.raises(InvalidMapError, match=who + "information diagonal entry 0 is 1e\\+300"):
+        decode_feature_map(enc.labels, enc.sizes, data)
+
+
+def test_decoded_sparse_maps_stay_sparse_and_equal_the_original():
+    n = 2 * 150
+    info = sp.diags([np.full(n, 50.0), np.full(n - 1, 1.0)], [0, 1])
+    info = sp.csr_matrix(info + sp.triu(info, 1).T)
+    m = LocalMap(2, 0, None, np.arange(1, 151), np.ones(150, np.int8), np.zeros(n), info, name="m")
+    back = decode_map(*parts(to_msg(encode_map(m, 1)))).local_map
+    assert sp.issparse(back.info) and (back.info != m.info).nnz == 0

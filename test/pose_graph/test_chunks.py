@@ -4,13 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.linalg
+import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import GraphError
 from linear_slam_ros.core.geometry import relative_pose
+from linear_slam_ros.core.limits import InputLimits
+from linear_slam_ros.core.local_map import fuse_repeated
+from linear_slam_ros.core.solvers import DENSE_MAX
 from linear_slam_ros.pose_graph.chunks import (
+    block_diagonal,
     chunk_end_pose,
     chunk_to_local_map,
     edge_maps,
+    fuse_star_edges,
     graph_from_local_maps,
     star_chunk_to_local_map,
 )
@@ -78,3 +85,53 @@ def test_edge_maps_and_graph_from_local_maps_are_inverse(dim, rng, circle_graph)
     back = graph_from_local_maps(edges)
     for name in ("from_ids", "to_ids", "measurements", "information", "pose_ids"):
         assert getattr(back, name).tobytes() == getattr(graph, name).tobytes(), name
+
+
+def test_star_fusion_equals_fusing_the_dense_block_diagonal(rng):
+    """Repeated edges fused block by block equal fuse_repeated on the dense matrix (angles wrapped next to the first)."""
+    to = np.array([5, 9, 5, 6, 9, 5])
+    k = to.size
+    z = rng.normal(size=(k, 3))
+    z[2, 2] = z[0, 2] + 2 * np.pi + 0.01  # the same heading, one turn apart
+    blocks = []
+    for _ in range(k):
+        a = rng.normal(size=(3, 3))
+        blocks.append(a @ a.T + 3 * np.eye(3))
+    graph = PoseGraph.from_edges(np.full(k, 2), to, z, np.stack(blocks), name="pose-graph chunk 8")
+    ids, values, info = fuse_star_edges(graph)
+    dense = scipy.linalg.block_diag(*blocks)
+    want_ids, _, want_x, want_info = fuse_repeated("x", 2, to, np.zeros(k, np.int8), z.ravel(), dense)
+    np.testing.assert_array_equal(ids, want_ids)
+    np.testing.assert_allclose(values.ravel(), want_x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(scipy.linalg.block_diag(*info), want_info, rtol=1e-12)
+    m = star_chunk_to_local_map(graph)
+    np.testing.assert_array_equal(m.ids, [5, 9, 6])
+    np.testing.assert_allclose(m.info_dense(), want_info, rtol=1e-12)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_large_star_chunks_keep_a_sparse_block_diagonal(dim, rng):
+    p = 3 if dim == 2 else 6
+    k = DENSE_MAX // p + 1  # just above the dense threshold
+    blocks = np.stack([np.eye(p) * (e + 1) + 0.1 * np.ones((p, p)) for e in range(k)])
+    graph = PoseGraph.from_edges(np.zeros(k), np.arange(1, k + 1), rng.normal(size=(k, p)) * 0.1, blocks)
+    m = star_chunk_to_local_map(graph)
+    assert sp.issparse(m.info) and m.info.nnz == k * p * p
+    np.testing.assert_array_equal(m.info_dense(), scipy.linalg.block_diag(*blocks))
+    small = star_chunk_to_local_map(PoseGraph.from_edges(np.zeros(2), [1, 2], np.zeros((2, p)), blocks[:2]))
+    assert isinstance(small.info, np.ndarray)
+    np.testing.assert_array_equal(block_diagonal(blocks[:2]), scipy.linalg.block_diag(*blocks[:2]))
+
+
+def test_lago_maps_are_checked_with_the_limits(rng, circle_graph):
+    _, graph = circle_graph(rng, n=20, loops=1.0, per_loop=20)
+    sel = slice(0, 8)
+    chunk = PoseGraph.from_edges(
+        graph.from_ids[sel], graph.to_ids[sel], graph.measurements[sel], graph.information[sel], name="pose-graph chunk 2"
+    )
+    assert not chunk.is_star
+    local = chunk_to_local_map(chunk)
+    match = "^local map 'pose-graph chunk 2 \\(LAGO\\)': coordinate at state index \\d+ \\(pose \\d+\\) is .* m, "
+    with pytest.raises(GraphError, match=match + "beyond the limit max_coordinate = 0.5 m$"):
+        chunk_to_local_map(chunk, InputLimits(max_coordinate=0.5))
+    assert np.abs(local.x).max() > 0.5

@@ -28,6 +28,7 @@ DDS on loopback only.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -302,6 +303,8 @@ def bench_dataset(node: Node, archive: Path, args: argparse.Namespace) -> dict[s
         restored["state_dir_bytes_after"] = folder_bytes(state_dir)
         if not args.keep_state:
             shutil.rmtree(state_dir, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                state_dir.parent.rmdir()  # when empty
         persist_s = persisted["journal_seconds_total"] + persisted["snapshot_seconds_total"]
         runs.append({
             "repetition": rep,

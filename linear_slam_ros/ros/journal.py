@@ -875,8 +875,19 @@ class Journal:
         is synced at all. The fsync itself runs without the journal's lock: appends from another
         thread go on meanwhile. Does nothing on a closed journal.
         """
+        return self.sync(only_if_due=True)
+
+    def sync(self, only_if_due: bool = False) -> bool:
+        """Make every record appended so far durable (fsync), without holding the journal's lock meanwhile.
+
+        Args:
+            only_if_due: fsync only if the policy says so (see :meth:`maybe_sync`).
+
+        Returns:
+            Whether it fsynced (nothing awaited it, or the journal is closed: ``False``).
+        """
         with self._lock:
-            if self._closed or self._failed or not self._unsynced or not self._sync_due():
+            if self._closed or self._failed or not self._unsynced or (only_if_due and not self._sync_due()):
                 return False
             storage, covered = self._storage, self._unsynced
         storage.fsync()  # the records appended before this call: later ones wait for the next sync

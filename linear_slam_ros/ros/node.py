@@ -94,7 +94,6 @@ class JoinerNode(Node):
         self._snapshot_records = -1  # journal records of the newest snapshot
         self._snapshot_joined = 0  # submaps joined in the newest snapshot
         self._persist_seconds = {"journal": 0.0, "snapshot": 0.0, "restore": 0.0}
-        self._journal_lock = threading.Lock()  # the journal is appended from the joining thread, synced from the output one
         self._start_state()
 
         depth = config.queue_depth
@@ -184,8 +183,7 @@ class JoinerNode(Node):
         with self._lock:
             if journal is not None and self.store is not None and not self.joiner.already_handled(seq):
                 t0 = time.perf_counter()
-                with self._journal_lock:
-                    record = self.store.journal.append(journal[0], journal[1], self.get_clock().now().nanoseconds)
+                record = self.store.journal.append(journal[0], journal[1], time.time_ns())  # receive time, wall clock
                 self._persist_seconds["journal"] += time.perf_counter() - t0
             joined = self.joiner.offer(submap, seq)
             if record is not None:
@@ -270,9 +268,11 @@ class JoinerNode(Node):
         """
         config = self.config
         t0 = time.perf_counter()
+        loaded = False
         if self.store is not None and self.store.has_state():
             recovery = self.store.recover(self.joiner, self._replay)
             self._journal_records = recovery.snapshot_records + recovery.replayed
+            self._snapshot_records, self._snapshot_joined = recovery.snapshot_records, self.joiner.state.n_joined
             self._version += 1  # publish the resumed map at once
             self.get_logger().info(
                 f"resumed from {recovery.snapshot or 'an empty map'} and {recovery.replayed} journal record(s) in "
@@ -285,10 +285,12 @@ class JoinerNode(Node):
                 self.get_logger().warning(f"initial_map {config.initial_map} ignored: state_dir {config.state_dir} holds a state")
         elif config.initial_map:
             self._load(Path(config.initial_map), snapshot=False)
+            loaded = True
         self._persist_seconds["restore"] = time.perf_counter() - t0
         if self.store is not None:
             self.store.open_journal()
-            self._snapshot()
+            if self._journal_records > max(self._snapshot_records, 0) or loaded:
+                self._snapshot()  # so that the next resume need not replay (or lose the loaded map)
 
     def _load(self, path: Path, snapshot: bool = True) -> None:
         """Replace the joiner state by a saved one (``~/save_map``'s ``state.npz`` or ``--save-state``)."""
@@ -310,8 +312,7 @@ class JoinerNode(Node):
             saved = self.joiner.save(self._journal_records)
         t0 = time.perf_counter()
         try:
-            with self._journal_lock:
-                self.store.journal.flush(fsync=True)  # the snapshot never includes records the disk lacks
+            self.store.journal.sync()  # the snapshot never includes records the disk lacks (appends go on)
             self.store.write_snapshot(saved)
         except LinearSlamError as exc:
             self.get_logger().error(f"snapshot failed (the journal still holds every submap): {exc}")
@@ -323,8 +324,7 @@ class JoinerNode(Node):
     def _on_snapshot_timer(self) -> None:
         if self.store is None:
             return
-        with self._journal_lock:
-            self.store.journal.maybe_sync()  # a journal that falls quiet gets its last records synced too
+        self.store.journal.maybe_sync()  # off the joining thread; a journal that falls quiet gets synced too
         with self._lock:
             due = self.joiner.state.n_joined - self._snapshot_joined >= self.config.snapshot_period
         if due:
@@ -334,8 +334,7 @@ class JoinerNode(Node):
         """Snapshot and close the journal (clean shutdown), then destroy the node."""
         if self.store is not None:
             self._snapshot()
-            with self._journal_lock:
-                self.store.close()
+            self.store.close()
             self.store = None
         super().destroy_node()
 

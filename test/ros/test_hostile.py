@@ -75,16 +75,19 @@ pytestmark = pytest.mark.ros
 
 ATOL = 1e-12
 """Largest |x_node - x_offline| accepted (the node and the core run the same code: bit-identical expected)."""
-STEP_TIMEOUT = 6.0
+STEP_TIMEOUT = 10.0
 """Seconds to wait for the valid submap after a hostile message to be joined."""
-WARN_GRACE = 3.0
-"""Once a warning is logged, seconds to wait for that valid submap before giving up on it (the node keeps its outputs
-under a quarter of its time, so a republish after a rejection can hold the next one back for a while)."""
+WARN_GRACE = 6.0
+"""Once a warning is logged, seconds to wait for that valid submap before giving up on it. The node keeps its outputs
+under a quarter of its time: with 30 Intel chunks joined a publish takes up to ~0.8 s here (2 cores), so the republish
+after a rejection can hold the next global_map back for 3 s."""
 NODE_PARAMS: dict[str, object] = {"publish_rate": 50.0, "summary_period": 0.5, "ellipse_max_state": 0}
 LOCAL, GRAPH = "local_map", "pose_graph"
 FAR = 1_000_000
 """Pose ids and frames no stream uses."""
 
+# The node's parameters as the sources declare them (``make setup`` installs the sources before a test session):
+# a case that needs a parameter the node lacks is an expected failure until it lands.
 _PARAMS = {f.name for f in dataclasses.fields(JoinerConfig)}
 HAS_REORDER_TIMEOUT = "reorder_timeout" in _PARAMS
 HAS_REORDER_MAX_BYTES = "reorder_max_bytes" in _PARAMS
@@ -517,6 +520,8 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "state-one-short", edit(_state_short), r"(?i)state.*(shape|size|need|values)"),
         Case(stream, "state-one-extra", edit(lambda s, c: put(s, "state", np.r_[seg(s, "state"), 0.0])),
              r"(?i)state.*(shape|size|need|values)"),
+        Case(stream, "malformed-carrying-the-next-seq", edit(lambda s, c: put(s, "info_vals", seg(s, "info_vals")[:-1])),
+             r"(?i)(info_rows|info_cols|info_vals).*(differ|size)"),
         Case(stream, "var_kinds-one-short", edit(lambda s, c: put(s, "var_kinds", seg(s, "var_kinds")[:-1])),
              r"(?i)var_ids.*var_kinds|var_kinds.*var_ids"),
         Case(stream, "data_offset-3", edit(lambda s, c: build(s, data_offset=3)), r"(?i)data_offset"),
@@ -533,6 +538,7 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "stamp-negative", edit(_h(4, -1)), r"(?i)stamp"),
         Case(stream, "stamp-nanosec-1e9", edit(_h(5, 1e9)), r"(?i)stamp"),
         Case(stream, "stamp-inf", edit(_h(4, np.inf)), r"(?i)stamp|(non-finite|inf).*header"),
+        Case(stream, "stamp-nanosec-NaN", edit(_h(5, np.nan)), r"(?i)stamp|(non-finite|nan).*header"),
         Case(stream, "state-NaN", edit(_set("state", 0, np.nan)), _nonfinite("state")),
         Case(stream, "state-inf", edit(_set("state", -1, -np.inf)), _nonfinite("state")),
         Case(stream, "info-NaN", edit(_set("info_vals", 0, np.nan)), _nonfinite("info")),
@@ -752,10 +758,6 @@ class View:
         return self._decode()[1]
 
 
-def _view(raw: bytes) -> View:
-    return View(raw)
-
-
 class Session:
     """One joiner process and what the test sees of it: publishers, the latched map, its output lines."""
 
@@ -779,7 +781,7 @@ class Session:
             self.lines.append(line.decode(errors="replace").rstrip("\n"))
 
     def _on_map(self, raw: bytes) -> None:
-        self.views.append(_view(bytes(raw)))
+        self.views.append(View(bytes(raw)))
 
     def _on_diag(self, msg: Any) -> None:
         for status in msg.status:
@@ -1075,7 +1077,17 @@ def _tail_rejection(runner: StreamRunner, result: StreamRun) -> None:
     n0 = before.stats.get("n_rejected", 0.0) if before is not None else 0.0
     view = ses.wait(lambda v: v.stats.get("n_rejected", -1.0) >= n0 + 1, 3.0)
     ses.spin(0.05)
-    result.tail = {"before": n0, "view": ses.latest, "counted": view is not None, "warnings": ses.warnings(mark)}
+    late = rclpy.create_node(f"late_{uuid.uuid4().hex[:8]}")
+    received: list[View] = []
+    sub = late.create_subscription(Float64MultiArray, ses.joiner.topic("global_map"),
+                                   lambda raw: received.append(View(bytes(raw))), latched_qos(), raw=True)
+    deadline = time.monotonic() + 5.0
+    while not received and time.monotonic() < deadline:
+        rclpy.spin_once(late, timeout_sec=0.05)
+    late.destroy_subscription(sub)
+    late.destroy_node()
+    result.tail = {"before": n0, "view": ses.latest, "counted": view is not None, "warnings": ses.warnings(mark),
+                   "late_first": received[0] if received else None}
 
 
 _RUNS: dict[str, StreamRun | BaseException] = {}
@@ -1171,6 +1183,9 @@ def test_latched_global_map_counts_a_trailing_rejection(node, start_joiner, read
     assert any(re.search(r"(?i)(non-finite|nan).*state", ln) for ln in tail["warnings"]), tail["warnings"]
     assert tail["counted"], f"latched n_rejected stayed {tail['view'].stats.get('n_rejected') if tail['view'] else None}"
     assert tail["view"].stats["n_rejected"] == tail["before"] + 1
+    late = tail["late_first"]
+    assert late is not None, "a late subscriber got no global_map"
+    assert late.stats.get("n_rejected") == tail["before"] + 1, f"a late subscriber got n_rejected {late.stats.get('n_rejected')}"
 
 
 # ====================================================================== the sequence and buffer runs
@@ -1304,7 +1319,7 @@ def flood_run(node: Any, start_joiner: Callable[..., JoinerProcess]) -> dict[str
         late = rclpy.create_node(f"late_{uuid.uuid4().hex[:8]}")
         received: list[View] = []
         sub = late.create_subscription(Float64MultiArray, ses.joiner.topic("global_map"),
-                                       lambda raw: received.append(_view(bytes(raw))), latched_qos(), raw=True)
+                                       lambda raw: received.append(View(bytes(raw))), latched_qos(), raw=True)
         deadline = time.monotonic() + 5.0
         while not received and time.monotonic() < deadline:
             rclpy.spin_once(late, timeout_sec=0.05)
@@ -1333,7 +1348,9 @@ def test_far_ahead_flood_is_bounded_by_reorder_max_bytes(node, start_joiner):
     f = flood_run(node, start_joiner)
     assert f["flood_handled"], "the node did not handle each far-ahead message (the probe after it was not rejected)"
     control, flood = max(f["rss_control"]), max(f["rss_flood"])
-    bound = FLOOD_MAX_BYTES + 4 * f["message_bytes"]  # what it may hold, plus heap noise of a few messages
+    # What it may hold, plus the heap's own noise: with glibc keeping freed decoding buffers (1 GiB mmap threshold),
+    # two runs of the same maps differ by up to ~20 MB. Keeping all 20 maps costs ~75 MB; this bound sits between.
+    bound = FLOOD_MAX_BYTES + 8 * f["message_bytes"]
     assert flood - control <= bound, (
         f"RSS peaked at {control / 2**20:.0f} MiB over 20 such maps skipped as resent, at {flood / 2**20:.0f} MiB over "
         f"20 far-ahead ones ({' '.join(f'{r / 2**20:.0f}' for r in f['rss_flood'])} MiB): it keeps "

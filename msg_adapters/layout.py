@@ -248,7 +248,10 @@ def _check_map_sizes(seg: dict[str, FloatArray], limits: InputLimits, what: str)
             _check_size(f"values in segment {name!r}", seg[name].size, "max_state_scalars", limits, what)
     for name in ("info_rows", "info_cols", "info_vals"):
         _check_size(f"information triplets (segment {name!r})", seg[name].size, "max_info_triplets", limits, what)
-    k = seg["info_vals"].size
+    rows, cols, vals = (seg[name].size for name in ("info_rows", "info_cols", "info_vals"))
+    if not rows == cols == vals:
+        raise MessageError(f"{what}: info_rows, info_cols, info_vals sizes differ ({rows}, {cols}, {vals})")
+    k = vals
     if k > n * (n + 1) // 2:
         raise MessageError(
             f"{what}: {k} information triplets, more than the {n * (n + 1) // 2} entries of the upper triangle "

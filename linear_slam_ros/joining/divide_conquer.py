@@ -131,6 +131,8 @@ def online_dc_step(state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
         FrameError: the submap neither is in nor holds the end pose of the newest stack entry.
     """
     if state.stack:
+        if submap.dim != state.stack[-1].dim:  # checked now: an odd submap waits on the stack unjoined
+            raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {state.stack[-1].dim}D")
         seam = state.stack[-1].end_id
         if seam is not None and submap.frame_id != seam and not submap.has_pose(seam):
             raise FrameError(

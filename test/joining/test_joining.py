@@ -155,3 +155,11 @@ def test_online_dc_step_is_pure(rng):
     x_before = s1.stack[0].x.copy()
     online_dc_step(s1, maps[1])
     np.testing.assert_array_equal(s1.stack[0].x, x_before)
+
+
+def test_online_dc_refuses_a_submap_of_another_dimension_at_once(rng):
+    maps_2d = noisy_local_maps(make_world(2, 12, 10, rng), rng, steps_per_map=3)
+    maps_3d = noisy_local_maps(make_world(3, 12, 10, rng), rng, steps_per_map=3)
+    state = online_dc_step(OnlineDCState(), maps_2d[0])
+    with pytest.raises(InvalidMapError, match="is 3D, the global map is 2D"):
+        online_dc_step(state, maps_3d[1])  # pushed alone it would wait unjoined on the stack

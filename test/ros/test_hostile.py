@@ -332,6 +332,15 @@ def _lower_triangle(s: Segs, _ctx: Ctx) -> None:
 
 
 def _repeated_entry(s: Segs, _ctx: Ctx) -> None:
+    """The last off-diagonal triplet replaced by a copy of the first: as many triplets, one entry twice."""
+    k = int(np.flatnonzero(seg(s, "info_rows") < seg(s, "info_cols"))[-1])
+    for label in ("info_rows", "info_cols", "info_vals"):
+        v = seg(s, label)
+        v[k] = v[0]
+
+
+def _extra_triplet(s: Segs, _ctx: Ctx) -> None:
+    """One triplet more than the upper triangle has entries (the first one again)."""
     for label in ("info_rows", "info_cols", "info_vals"):
         v = seg(s, label)
         put(s, label, np.r_[v, v[:1]])
@@ -467,6 +476,8 @@ EXTREME = r"(condition|out of range|too (large|small|big)|magnitude|scale|extrem
 
 
 LIMIT = r"(limit|max_\w+|too (many|large|big))"
+_ENTRY = r"(entry|entries|triplet|information)"
+REPEATED = rf"(?i)((repeat|duplicat)\w*.*{_ENTRY}|{_ENTRY}.*(repeat|duplicat))"
 
 
 def _sizes_or_limit(what: str) -> str:
@@ -557,7 +568,8 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "info-col-out-of-range", edit(lambda s, c: _set("info_cols", -1, seg(s, "state").size)(s, c)),
              r"(?i)(index|indices).*range|out of range"),
         Case(stream, "info-row-negative", edit(_set("info_rows", 0, -1)), r"(?i)(index|indices).*range|out of range|negative"),
-        Case(stream, "info-repeated-entry", edit(_repeated_entry), r"(?i)(repeated|duplicate).*(entry|triplet|information)"),
+        Case(stream, "info-repeated-entry", edit(_repeated_entry), REPEATED),
+        Case(stream, "info-more-triplets-than-the-triangle", edit(_extra_triplet), REPEATED),
         Case(stream, "info-not-positive-definite", edit(_not_pd), SPD),
         Case(stream, "info-singular", edit(_singular), SPD),
         Case(stream, "info-1e300-on-one-pose", edit(_scale_pose_info(1e300)), _extreme("information")),

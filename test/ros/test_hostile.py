@@ -1077,6 +1077,20 @@ class StreamRunner:
         return result
 
 
+def _late_first(ses, timeout_s: float = 5.0):
+    """Return the first ``global_map`` a new, late subscriber receives (the latched one), or ``None``."""
+    late = rclpy.create_node(f"late_{uuid.uuid4().hex[:8]}")
+    received: list[View] = []
+    sub = late.create_subscription(Float64MultiArray, ses.joiner.topic("global_map"),
+                                   lambda raw: received.append(View(bytes(raw))), latched_qos(), raw=True)
+    deadline = time.monotonic() + timeout_s
+    while not received and time.monotonic() < deadline:
+        rclpy.spin_once(late, timeout_sec=0.05)
+    late.destroy_subscription(sub)
+    late.destroy_node()
+    return received[0] if received else None
+
+
 def _tail_rejection(runner: StreamRunner, result: StreamRun) -> None:
     """After the last submap: one more rejection, which the latched global_map must count."""
     ses = runner.session
@@ -1089,17 +1103,8 @@ def _tail_rejection(runner: StreamRunner, result: StreamRun) -> None:
     n0 = before.stats.get("n_rejected", 0.0) if before is not None else 0.0
     view = ses.wait(lambda v: v.stats.get("n_rejected", -1.0) >= n0 + 1, 3.0)
     ses.spin(0.05)
-    late = rclpy.create_node(f"late_{uuid.uuid4().hex[:8]}")
-    received: list[View] = []
-    sub = late.create_subscription(Float64MultiArray, ses.joiner.topic("global_map"),
-                                   lambda raw: received.append(View(bytes(raw))), latched_qos(), raw=True)
-    deadline = time.monotonic() + 5.0
-    while not received and time.monotonic() < deadline:
-        rclpy.spin_once(late, timeout_sec=0.05)
-    late.destroy_subscription(sub)
-    late.destroy_node()
     result.tail = {"before": n0, "view": ses.latest, "counted": view is not None, "warnings": ses.warnings(mark),
-                   "late_first": received[0] if received else None}
+                   "late_first": _late_first(ses)}
 
 
 _RUNS: dict[str, StreamRun | BaseException] = {}
@@ -1328,16 +1333,7 @@ def flood_run(node: Any, start_joiner: Callable[..., JoinerProcess]) -> dict[str
         out["reset"] = None if result is None else (result.success, result.message)
         ses.spin(1.0)
         out["rss_after_reset"] = ses.status("VmRSS")
-        late = rclpy.create_node(f"late_{uuid.uuid4().hex[:8]}")
-        received: list[View] = []
-        sub = late.create_subscription(Float64MultiArray, ses.joiner.topic("global_map"),
-                                       lambda raw: received.append(View(bytes(raw))), latched_qos(), raw=True)
-        deadline = time.monotonic() + 5.0
-        while not received and time.monotonic() < deadline:
-            rclpy.spin_once(late, timeout_sec=0.05)
-        late.destroy_subscription(sub)
-        late.destroy_node()
-        out["late_first"] = received[0] if received else None
+        out["late_first"] = _late_first(ses)
         for i, m in enumerate(maps, start=1):
             ses.publish(LOCAL, build(map_segs(m, i)))
         out["again"] = ses.wait(lambda v: v.n_submaps >= len(maps) and v.seq >= len(maps), 15.0)

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from linear_slam_ros.core.errors import ConfigError
-from linear_slam_ros.core.limits import NODE_LIMITS
+from linear_slam_ros.core.limits import LIMIT_NAMES, NODE_LIMITS, InputLimits
 from linear_slam_ros.joiner.registry import methods
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
@@ -128,6 +129,11 @@ class JoinerConfig:
         NODE_LIMITS.max_coordinate, "largest |coordinate| of a position or measured translation, m (maps are robocentric)",
         bounds=(1.0, 1e15),
     )
+
+    @functools.cached_property
+    def limits(self) -> InputLimits:
+        """The input limits of the ``max_*``/``min_*`` fields (same names), built once per config."""
+        return InputLimits(**{name: getattr(self, name) for name in LIMIT_NAMES})
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], online: bool = True) -> JoinerConfig:

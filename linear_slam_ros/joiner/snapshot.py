@@ -55,19 +55,15 @@ class SnapshotError(LinearSlamError):
     """A state file cannot be written or read back exactly (missing, truncated, corrupt, other version)."""
 
 
-def _plain(cls: type) -> Callable[..., Any]:
-    return cls
-
-
 CLASSES: dict[str, Callable[..., Any]] = {
-    "SavedJoiner": _plain(SavedJoiner),
-    "JoinerState": _plain(JoinerState),
-    "SequentialState": _plain(SequentialState),
-    "OnlineDCState": _plain(OnlineDCState),
-    "FeatureJoinState": _plain(FeatureJoinState),
-    "Group": _plain(Group),
-    "FeatureMap": _plain(FeatureMap),
-    "CovarianceMap": _plain(CovarianceMap),
+    "SavedJoiner": SavedJoiner,
+    "JoinerState": JoinerState,
+    "SequentialState": SequentialState,
+    "OnlineDCState": OnlineDCState,
+    "FeatureJoinState": FeatureJoinState,
+    "Group": Group,
+    "FeatureMap": FeatureMap,
+    "CovarianceMap": CovarianceMap,
     "LocalMap": LocalMap.trusted,  # computed by the core: not validated again
 }
 """Dataclasses a state file may hold, and how each is rebuilt from its fields."""

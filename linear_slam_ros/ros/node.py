@@ -29,7 +29,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageError
-from linear_slam_ros.core.limits import LIMIT_NAMES, InputLimits
+from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.io.results import write_map
@@ -160,7 +160,7 @@ class JoinerNode(Node):
         """Decode an inbound message, journal it (with ``state_dir``), then offer it to the joiner."""
         self.n_received += 1
         try:
-            submap, seq = _decode(topic, raw, _limits(self.config))
+            submap, seq = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
@@ -169,7 +169,7 @@ class JoinerNode(Node):
     def _replay(self, topic: str, raw: bytes) -> None:
         """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
         try:
-            submap, seq = _decode(topic, raw, _limits(self.config))
+            submap, seq = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
             self._journal_records += 1
@@ -410,11 +410,6 @@ class JoinerNode(Node):
         for what, seconds in self._cpu_seconds.items():
             status.values.append(KeyValue(key=f"{what}_cpu_seconds_total", value=f"{seconds:g}"))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
-
-
-def _limits(config: JoinerConfig) -> InputLimits:
-    """Return the input limits of the node's ``max_*``/``min_*`` parameters (same names)."""
-    return InputLimits(**{name: getattr(config, name) for name in LIMIT_NAMES})
 
 
 def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int]:

@@ -17,11 +17,8 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import FrameError
-from linear_slam_ros.core.geometry import angles3, dangles3, drot3, pose_size, rot3, single_rotation, wrap_angle
-from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, pose_key, var_offsets, var_sizes
-
-DENSE_MATMUL_MAX = 64
-"""Up to this size ``G^T I G`` is two dense BLAS products; above, ``G`` is used as sparse."""
+from linear_slam_ros.core.geometry import angles3, dangles3, pose_size, rot3, rot3_and_drot3, single_rotation, wrap_angle
+from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, pose_key, seed_key_lookup, var_offsets, var_sizes
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -89,8 +86,13 @@ def reframe(dim: int, x: FloatArray, layout: Layout) -> FloatArray:
         x_new[ang_idx[:, 0]] = wrap_angle(x[ang_idx[:, 0]] - ang_frame[0])
         x_new[frame_cols[2]] = wrap_angle(-ang_frame[0])
     else:
-        x_new[ang_idx] = angles3(rot3(x[ang_idx]) @ rot.T)
-        x_new[frame_cols[3:]] = angles3(rot.T)
+        m = ang_idx.shape[0]
+        rels = np.empty((m + 1, 3, 3))  # the poses' orientations seen from the frame, and the old origin's
+        np.matmul(rot3(x[ang_idx]), rot.T, out=rels[:m])
+        rels[m] = rot.T
+        ang = angles3(rels)
+        x_new[ang_idx] = ang[:m]
+        x_new[frame_cols[3:]] = ang[m]
     return x_new
 
 
@@ -124,6 +126,15 @@ class FrameJacobian(NamedTuple):
         jac[frame_cols[:, None], frame_cols[None, :]] = self.slot
         return jac
 
+    def column(self, n: int) -> FloatArray:
+        """Return the ``(n, p)`` columns of the slot (the Jacobian's only dense block)."""
+        pos_idx, ang_idx, frame_cols = self.layout
+        out = np.zeros((n, frame_cols.size))
+        out[pos_idx] = self.pos_frame
+        out[ang_idx] = self.ang_frame
+        out[frame_cols] = self.slot
+        return out
+
     def csr(self, n: int, transpose: bool = False) -> sp.csr_matrix:
         """Return the ``(n, n)`` Jacobian (or its transpose) as CSR."""
         pos_idx, ang_idx, frame_cols = self.layout
@@ -155,45 +166,78 @@ def reframe_jacobian(dim: int, x: FloatArray, layout: Layout) -> FrameJacobian:
     m = ang_idx.shape[0]
     pos_frame = np.empty((k, d, p))
     pos_frame[:, :, :d] = -rot
-    pos_frame[:, :, d:] = np.einsum("kij,nj->nik", drot, x[pos_idx] - t_frame)
+    diff = x[pos_idx] - t_frame  # (k, d)
     slot = np.zeros((p, p))
     slot[:d, :d] = -rot
-    slot[:d, d:] = -np.einsum("kij,j->ik", drot, t_frame)
     ang_frame_blk = np.zeros((m, p - d, p))
     if dim == 2:
+        pos_frame[:, :, 2] = diff @ drot[0].T
+        slot[:2, 2] = -(drot[0] @ t_frame)
         ang_self = np.ones((m, 1, 1))
         ang_frame_blk[:, 0, 2] = -1.0
         slot[2, 2] = -1.0
     else:
+        pos_frame[:, :, d:] = np.matmul(diff, np.swapaxes(drot, -1, -2)).transpose(1, 2, 0)
+        slot[:d, d:] = -(drot @ t_frame).T
         ang_v = x[ang_idx]
-        rot_v = rot3(ang_v)
-        rel = rot_v @ rot.T
-        ang_self = dangles3(rel, drot3(ang_v) @ rot.T)
-        ang_frame_blk[:, :, 3:] = dangles3(rel, rot_v[:, None, :, :] @ np.swapaxes(drot, -1, -2)[None])
-        slot[3:, 3:] = dangles3(rot.T, np.swapaxes(drot, -1, -2))
+        rot_v, drot_v = rot3_and_drot3(ang_v)
+        # One dangles3 for all: each pose along its own angles then the slot's, and (last row)
+        # the slot's own orientation along its angles.
+        rels = np.empty((m + 1, 3, 3))
+        np.matmul(rot_v, rot.T, out=rels[:m])
+        rels[m] = rot.T
+        directions = np.zeros((m + 1, 6, 3, 3))
+        np.matmul(drot_v, rot.T, out=directions[:m, :3])
+        np.matmul(rot_v[:, None, :, :], np.swapaxes(drot, -1, -2), out=directions[:m, 3:])
+        directions[m, :3] = np.swapaxes(drot, -1, -2)
+        both = dangles3(rels, directions)  # (m + 1, 3, 6)
+        ang_self = both[:m, :, :3]
+        ang_frame_blk[:, :, 3:] = both[:m, :, 3:]
+        slot[3:, 3:] = both[m, :, :3]
     return FrameJacobian(layout, rot, pos_frame, ang_self, ang_frame_blk, slot)
+
+
+def _times_jacobian(matrix: FloatArray, back: FrameJacobian, column: FloatArray) -> FloatArray:
+    """Return ``matrix @ G`` for a dense ``(n, n)`` matrix, using the structure of ``G``.
+
+    ``G`` is block diagonal (the rotation on every translation-like pair of scalars, the angle
+    blocks on pose angles; the slot's own blocks included, then overwritten) plus the dense
+    column block ``column`` (``(n, p)``, the slot's columns of ``G``).
+    """
+    pos_idx, ang_idx, frame_cols = back.layout
+    out = matrix.copy()  # 2D pose angles: identity blocks
+    out[:, pos_idx] = matrix[:, pos_idx] @ back.rot
+    if back.rot.shape[0] == 3:
+        out[:, ang_idx] = (matrix[:, ang_idx][:, :, None, :] @ back.ang_self)[:, :, 0, :]
+    out[:, frame_cols] = matrix @ column
+    return out
 
 
 def transform_information(info: InfoMatrix, back: FrameJacobian) -> InfoMatrix:
     """Return ``G^T I G`` for the reverse-change Jacobian ``G`` (eq. 20).
 
-    Dense information stays dense (BLAS products, ``G`` dense for small maps, sparse above
-    :data:`DENSE_MATMUL_MAX`); sparse information stays CSR.
+    Dense information stays dense: ``I G`` and ``G^T (I G)`` are taken block by block (a product
+    with the rotation on all translation-like scalars at once, one with the slot's column block),
+    never with ``G`` as a matrix, and the result is symmetrised. Sparse information stays sparse:
+    the result is CSR with sorted indices and no duplicates, the form the joins assemble from.
     """
     n = info.shape[0]
     if not sp.issparse(info):
-        if n <= DENSE_MATMUL_MAX:
-            g = back.dense(n)
-            out = g.T @ np.asarray(info) @ g
-        else:
-            g_t = back.csr(n, transpose=True)
-            out = g_t @ (g_t @ np.asarray(info)).T  # G^T (I G), I symmetric
-        return 0.5 * (out + out.T)
+        column = back.column(n)
+        right = _times_jacobian(np.asarray(info), back, column)  # I G
+        out = _times_jacobian(np.ascontiguousarray(right.T), back, column)  # (G^T I G)^T = (I G)^T G
+        out += out.T
+        out *= 0.5
+        return out
     g_t = back.csr(n, transpose=True)
     # G^T I G is symmetric up to round-off (1e-16 relative); the solvers read one triangle and
-    # the message encoder the upper one, so it is not symmetrised here (a transpose and an add
-    # on the largest matrices of divide and conquer).
-    return (g_t @ info.tocsr() @ g_t.T).tocsr()
+    # the message encoder the upper one, so it is not symmetrised. The product's indices are
+    # unsorted; its transpose (one pass, sorted by construction) is taken instead of a sort:
+    # the CSC arrays of M read as CSR are M^T, which is G^T I^T G, equal up to that round-off.
+    product = (g_t @ info @ g_t.T).tocsc()
+    moved = sp.csr_matrix((product.data, product.indices, product.indptr), shape=(n, n))
+    moved.has_sorted_indices = True
+    return moved
 
 
 def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
@@ -201,6 +245,52 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
 
     The old frame pose becomes a variable in the slot of ``new_frame_id``; information is
     carried through the reverse Jacobian, so the map stays exactly equivalent to first order.
+    The new map's key lookup is derived from the old one's (one key changes), not rebuilt.
+
+    Raises:
+        FrameError: ``new_frame_id`` is not a pose variable of the map.
+    """
+    if new_frame_id == local_map.frame_id:
+        return local_map
+    new_key = pose_key(new_frame_id)
+    slot = local_map.index_of(new_key)
+    if slot is None:
+        raise FrameError(
+            f"cannot change map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
+            f"pose {new_frame_id}: that pose is not in the map"
+        )
+    dim = local_map.dim
+    if not sp.issparse(local_map.info):
+        # Dense map: the slot stays in the vectorised blocks (its entries are overwritten by the
+        # slot's own), which saves building a layout without it.
+        off = int(local_map.offsets[slot])
+        layout = Layout(local_map.position_index, local_map.angle_index, off + _POSE_RANGE[dim])
+    else:
+        layout = frame_layout(dim, local_map.kinds, slot, local_map.offsets)
+    x_new = reframe(dim, local_map.x, layout)
+    info = transform_information(local_map.info, reframe_jacobian(dim, x_new, layout))
+    ids = local_map.ids.copy()
+    ids[slot] = local_map.frame_id
+    moved = local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)  # same kinds: same layout
+    old_key = pose_key(local_map.frame_id)
+    keys = local_map.keys.copy()
+    keys[slot] = old_key
+    key_set = dict(local_map.key_set)
+    del key_set[new_key]
+    key_set[old_key] = slot
+    seed_key_lookup(moved, keys, key_set)
+    return moved
+
+
+_POSE_RANGE = {2: np.arange(3), 3: np.arange(6)}
+
+
+def estimate_in_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
+    """Return the map's estimate in the frame of its pose ``new_frame_id``, without its information.
+
+    What :func:`change_frame` does to the variables, at a fraction of the cost (no Jacobian):
+    for views that need positions only. The returned map's information is the identity (a
+    placeholder; do not join it).
 
     Raises:
         FrameError: ``new_frame_id`` is not a pose variable of the map.
@@ -210,20 +300,11 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     slot = local_map.index_of(pose_key(new_frame_id))
     if slot is None:
         raise FrameError(
-            f"cannot change map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
+            f"cannot move map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
             f"pose {new_frame_id}: that pose is not in the map"
         )
-    dim, kinds = local_map.dim, local_map.kinds
-    n = local_map.state_dim
-    if not sp.issparse(local_map.info) and n <= DENSE_MATMUL_MAX:
-        # Small dense map: include the slot in the vectorised blocks (its rows are overwritten
-        # by the slot's own block), which saves building a layout without it.
-        off = int(local_map.offsets[slot])
-        layout = Layout(local_map.position_index, local_map.angle_index, off + np.arange(pose_size(dim)))
-    else:
-        layout = frame_layout(dim, kinds, slot, local_map.offsets)
-    x_new = reframe(dim, local_map.x, layout)
-    info = transform_information(local_map.info, reframe_jacobian(dim, x_new, layout))
+    x_new = reframe(local_map.dim, local_map.x, frame_layout(local_map.dim, local_map.kinds, slot, local_map.offsets))
     ids = local_map.ids.copy()
     ids[slot] = local_map.frame_id
-    return local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)  # same kinds: same layout
+    placeholder = sp.identity(local_map.state_dim, format="csr")
+    return local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=placeholder)

@@ -93,17 +93,55 @@ def _drx(g: FloatArray) -> FloatArray:
     return np.stack([np.stack([z, z, z], -1), np.stack([z, -s, c], -1), np.stack([z, -c, -s], -1)], -2)
 
 
+# Entries of RZ(a), dRZ, RY(b), dRY, RX(g), dRX (row-major, 9 each) as linear combinations of
+# (1, cos a, sin a, cos b, sin b, cos g, sin g): one small product builds all six for a batch of
+# poses, with the same values as the elementary matrices above (coefficients 0 and +-1 are exact).
+_ELEMENTARY = np.zeros((7, 6, 9))
+for _m, _entries in enumerate(
+    (
+        ((0, 1, 1), (1, 2, 1), (3, 2, -1), (4, 1, 1), (8, 0, 1)),  # RZ
+        ((0, 2, -1), (1, 1, 1), (3, 1, -1), (4, 2, -1)),  # dRZ
+        ((0, 3, 1), (2, 4, -1), (4, 0, 1), (6, 4, 1), (8, 3, 1)),  # RY
+        ((0, 4, -1), (2, 3, -1), (6, 3, 1), (8, 4, -1)),  # dRY
+        ((0, 0, 1), (4, 5, 1), (5, 6, 1), (7, 6, -1), (8, 5, 1)),  # RX
+        ((4, 6, -1), (5, 5, 1), (7, 5, -1), (8, 6, -1)),  # dRX
+    )
+):
+    for _entry, _src, _sign in _entries:
+        _ELEMENTARY[_src, _m, _entry] = _sign
+_ELEMENTARY_FLAT = _ELEMENTARY.reshape(7, 54)
+
+
+def _elementary3(angles: FloatArray) -> FloatArray:
+    """Return ``RZ, dRZ, RY, dRY, RX, dRX`` of ``(..., 3)`` angles, shape ``(..., 6, 3, 3)``."""
+    basis = np.empty(angles.shape[:-1] + (7,))
+    basis[..., 0] = 1.0
+    basis[..., 1::2] = np.cos(angles)
+    basis[..., 2::2] = np.sin(angles)
+    return (basis @ _ELEMENTARY_FLAT).reshape(angles.shape[:-1] + (6, 3, 3))
+
+
 def rot3(angles: FloatArray) -> FloatArray:
     """Return ``R = RX(gamma) RY(beta) RZ(alpha)``, shape ``(..., 3, 3)``, from ``(..., 3)`` angles."""
-    a, b, g = angles[..., 0], angles[..., 1], angles[..., 2]
-    return _rx(g) @ _ry(b) @ _rz(a)
+    e = _elementary3(angles)
+    return e[..., 4, :, :] @ e[..., 2, :, :] @ e[..., 0, :, :]
 
 
 def drot3(angles: FloatArray) -> FloatArray:
     """Return ``dR/d(alpha, beta, gamma)``, shape ``(..., 3, 3, 3)``: index ``[..., k, :, :]``."""
-    a, b, g = angles[..., 0], angles[..., 1], angles[..., 2]
-    rx, ry, rz = _rx(g), _ry(b), _rz(a)
-    return np.stack([rx @ ry @ _drz(a), rx @ _dry(b) @ rz, _drx(g) @ ry @ rz], -3)
+    return rot3_and_drot3(angles)[1]
+
+
+def rot3_and_drot3(angles: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Return :func:`rot3` and :func:`drot3` of ``(..., 3)`` angles together (one set of sines and cosines)."""
+    e = _elementary3(angles)
+    rz, drz, ry, dry, rx, drx = (e[..., i, :, :] for i in range(6))
+    rxy = rx @ ry
+    out = np.empty(angles.shape[:-1] + (3, 3, 3))
+    np.matmul(rxy, drz, out=out[..., 0, :, :])
+    np.matmul(rx @ dry, rz, out=out[..., 1, :, :])
+    np.matmul(drx @ ry, rz, out=out[..., 2, :, :])
+    return rxy @ rz, out
 
 
 def angles3(rot: FloatArray) -> FloatArray:
@@ -120,6 +158,10 @@ def angles3(rot: FloatArray) -> FloatArray:
 def dangles3(rot: FloatArray, drot: FloatArray) -> FloatArray:
     """Return the derivative of :func:`angles3` at ``rot`` along ``drot``.
 
+    The derivative is linear in the five entries of ``drot`` that :func:`angles3` reads; its
+    ``(3, 5)`` matrix depends on ``rot`` only, so it is built once per matrix and applied to all
+    ``k`` directions in one product.
+
     Args:
         rot: rotation matrices, ``(..., 3, 3)``.
         drot: directions, ``(..., k, 3, 3)`` (``k`` directions per matrix).
@@ -127,17 +169,28 @@ def dangles3(rot: FloatArray, drot: FloatArray) -> FloatArray:
     Returns:
         ``(..., 3, k)``: column ``j`` is ``d(alpha, beta, gamma)`` along ``drot[..., j, :, :]``.
     """
-    m = rot[..., None, :, :]
-    m00, m01, m02, m12, m22 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2], m[..., 1, 2], m[..., 2, 2]
-    d00, d01, d02 = drot[..., 0, 0], drot[..., 0, 1], drot[..., 0, 2]
-    d12, d22 = drot[..., 1, 2], drot[..., 2, 2]
+    batch = rot.shape[:-2]
+    m = np.reshape(rot, batch + (9,))[..., _ANGLE_ENTRIES]  # m00 m01 m02 m12 m22
+    m00, m01, m02, m12, m22 = (m[..., i] for i in range(5))
     h2 = m00 * m00 + m01 * m01
     h = np.sqrt(h2)
-    dalpha = (m00 * d01 - m01 * d00) / h2
-    dh = (m00 * d00 + m01 * d01) / h
-    dbeta = (-h * d02 + m02 * dh) / (h2 + m02 * m02)
-    dgamma = (m22 * d12 - m12 * d22) / (m12 * m12 + m22 * m22)
-    return np.stack([dalpha, dbeta, dgamma], -2)
+    beta_scale = 1.0 / (h2 + m02 * m02)
+    cross = m02 * beta_scale / h
+    gamma_scale = 1.0 / (m12 * m12 + m22 * m22)
+    jac = np.zeros(batch + (3, 5))
+    jac[..., 0, 0] = -m01 / h2
+    jac[..., 0, 1] = m00 / h2
+    jac[..., 1, 0] = m00 * cross
+    jac[..., 1, 1] = m01 * cross
+    jac[..., 1, 2] = -h * beta_scale
+    jac[..., 2, 3] = m22 * gamma_scale
+    jac[..., 2, 4] = -m12 * gamma_scale
+    d = np.reshape(drot, drot.shape[:-2] + (9,))[..., _ANGLE_ENTRIES]  # (..., k, 5)
+    return jac @ np.swapaxes(d, -1, -2)
+
+
+_ANGLE_ENTRIES = np.array([0, 1, 2, 5, 8])
+"""Flat indices of the entries of a rotation that :func:`angles3` reads: 00, 01, 02, 12, 22."""
 
 
 def rotation(dim: int, angles: FloatArray) -> FloatArray:
@@ -162,14 +215,27 @@ def single_rotation(dim: int, angles: FloatArray) -> tuple[FloatArray, FloatArra
     ca, sa = math.cos(angles[0]), math.sin(angles[0])
     cb, sb = math.cos(angles[1]), math.sin(angles[1])
     cg, sg = math.cos(angles[2]), math.sin(angles[2])
-    rz = np.array([[ca, sa, 0.0], [-sa, ca, 0.0], [0.0, 0.0, 1.0]])
-    drz = np.array([[-sa, ca, 0.0], [-ca, -sa, 0.0], [0.0, 0.0, 0.0]])
-    ry = np.array([[cb, 0.0, -sb], [0.0, 1.0, 0.0], [sb, 0.0, cb]])
-    dry = np.array([[-sb, 0.0, -cb], [0.0, 0.0, 0.0], [cb, 0.0, -sb]])
-    rx = np.array([[1.0, 0.0, 0.0], [0.0, cg, sg], [0.0, -sg, cg]])
-    drx = np.array([[0.0, 0.0, 0.0], [0.0, -sg, cg], [0.0, -cg, -sg]])
-    rxy = rx @ ry
-    return rxy @ rz, np.stack([rxy @ drz, rx @ dry @ rz, drx @ ry @ rz])
+    # RX(g) RY(b) RZ(a) and its three derivatives, multiplied out.
+    sgsb, cgsb, sgcb, cgcb = sg * sb, cg * sb, sg * cb, cg * cb
+    rot = np.array(
+        [
+            [cb * ca, cb * sa, -sb],
+            [sgsb * ca - cg * sa, sgsb * sa + cg * ca, sgcb],
+            [cgsb * ca + sg * sa, cgsb * sa - sg * ca, cgcb],
+        ]
+    )
+    drot = np.array(
+        [
+            [
+                [-cb * sa, cb * ca, 0.0],
+                [-sgsb * sa - cg * ca, sgsb * ca - cg * sa, 0.0],
+                [-cgsb * sa + sg * ca, cgsb * ca + sg * sa, 0.0],
+            ],
+            [[-sb * ca, -sb * sa, -cb], [sgcb * ca, sgcb * sa, -sgsb], [cgcb * ca, cgcb * sa, -cgsb]],
+            [[0.0, 0.0, 0.0], rot[2], -rot[1]],
+        ]
+    )
+    return rot, drot
 
 
 # ------------------------------------------------------------------- frame operations

@@ -106,6 +106,18 @@ def to_csr(matrix: InfoMatrix) -> sp.csr_matrix:
     return sp.csr_matrix(matrix) if not sp.issparse(matrix) else matrix.tocsr()
 
 
+def seed_key_lookup(value: Any, keys: IntArray, key_set: dict[int, int]) -> None:
+    """Store a map's variable keys and key lookup, computed by the caller, in its caches.
+
+    For maps derived from another (a change of frame, a join), whose lookup follows from the
+    other's in O(changes) instead of a dictionary built key by key. ``keys`` and ``key_set``
+    must equal what :attr:`VariableLayout.keys` and :attr:`VariableLayout.key_set` would compute.
+    """
+    cache = vars(value)
+    cache["keys"] = keys
+    cache["key_set"] = key_set
+
+
 @dataclass(frozen=True, eq=False)
 class StateLayout:
     """Where each variable's scalars sit in the state vector: an explicit, shareable cache.
@@ -149,7 +161,9 @@ class StateLayout:
     @functools.cached_property
     def angles(self) -> npt.NDArray[np.bool_]:
         """``(n,)`` mask of the pose-angle scalars of the state."""
-        return angle_mask(self.dim, self.kinds)
+        mask = np.zeros(int(self.sizes.sum()), dtype=bool)
+        mask[self.angle_index] = True
+        return mask
 
 
 def replaced_fields(value: Any, changes: Mapping[str, object]) -> dict[str, Any]:

@@ -10,6 +10,7 @@ most pi (Remark 3).
 
 from __future__ import annotations
 
+import itertools
 import logging
 
 import numpy as np
@@ -19,7 +20,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
-from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, StateLayout, scalar_indices, to_csr, to_dense, var_offsets
+from linear_slam_ros.core.local_map import InfoMatrix, LocalMap, StateLayout, seed_key_lookup, to_dense
 from linear_slam_ros.core.solvers import DENSE_MAX, solve_dense_spd, solve_sparse_spd
 
 logger = logging.getLogger(__name__)
@@ -71,29 +72,45 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
             f"maps {map_a.name!r} and {map_b.name!r} are in frames {map_a.frame_id} and {map_b.frame_id}; align them first"
         )
     lookup = map_a.key_set
-    pos = np.fromiter((lookup.get(k, -1) for k in map_b.keys.tolist()), np.int64, count=map_b.n_vars)
+    keys_b = map_b.keys
+    pos = np.fromiter(map(lookup.get, keys_b.tolist(), itertools.repeat(-1)), np.int64, count=keys_b.size)
     new = pos < 0
-    union_of_b = pos.copy()
-    union_of_b[new] = map_a.n_vars + np.arange(int(new.sum()))
-    ids = np.concatenate([map_a.ids, map_b.ids[new]])
-    kinds = np.concatenate([map_a.kinds, map_b.kinds[new]])
-    sizes = np.concatenate([map_a.sizes, map_b.sizes[new]])
-    offsets = var_offsets(sizes)
-    b_to_union = scalar_indices(offsets, sizes, union_of_b)
+    m_a = map_a.n_vars
+    n_new_vars = int(np.count_nonzero(new))
+    union_of_b = pos
+    union_of_b[new] = np.arange(m_a, m_a + n_new_vars)
+    new_sizes = map_b.sizes[new]
+    sizes = np.concatenate([map_a.sizes, new_sizes])
     n_a = map_a.state_dim
-    n = int(sizes.sum())
+    offsets = np.empty(sizes.size, dtype=np.int64)
+    offsets[:m_a] = map_a.offsets
+    new_offsets = offsets[m_a:]
+    new_offsets[:1] = n_a
+    np.cumsum(new_sizes[:-1], out=new_offsets[1:])
+    new_offsets[1:] += n_a
+    b_to_union = np.repeat(offsets[union_of_b] - map_b.offsets, map_b.sizes) + np.arange(map_b.state_dim)
+    n = n_a + int(new_sizes.sum())
 
     z_a = map_a.x
-    z_b = map_b.x.copy()
-    common_angles = map_b.angles & (b_to_union < n_a) if not new.all() else None
-    if common_angles is not None and common_angles.any():
-        ref = z_a[b_to_union[common_angles]]
-        z_b[common_angles] = ref + wrap_angle(z_b[common_angles] - ref)
+    z_b = map_b.x
+    if n_new_vars < keys_b.size:
+        common_angles = map_b.angles & (b_to_union < n_a)
+        if common_angles.any():
+            z_b = z_b.copy()
+            ref = z_a[b_to_union[common_angles]]
+            z_b[common_angles] = ref + wrap_angle(z_b[common_angles] - ref)
 
     x, joined_info = solve_union(map_a.info, z_a, map_b.info, z_b, b_to_union, n)
     end_id = map_b.end_id if map_b.end_id is not None else map_a.end_id
+    new_keys = keys_b[new]
+    ids = np.concatenate([map_a.ids, map_b.ids[new]])
+    kinds = np.concatenate([map_a.kinds, map_b.kinds[new]])
     layout = StateLayout(map_a.dim, kinds, known_sizes=sizes, known_offsets=offsets)
-    return LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name, layout)
+    joined = LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name, layout)
+    key_set = dict(lookup)
+    key_set.update(zip(new_keys.tolist(), range(m_a, m_a + n_new_vars), strict=True))
+    seed_key_lookup(joined, np.concatenate([map_a.keys, new_keys]), key_set)
+    return joined
 
 
 def solve_union(
@@ -107,8 +124,9 @@ def solve_union(
     """Solve eqs. (16)-(17) for two observations of a union state.
 
     Map ``a`` observes the first ``len(z_a)`` scalars of the union; map ``b`` observes the
-    scalars ``b_to_union``. Returns the estimate and ``A^T I_Z A`` (dense up to
-    :data:`DENSE_MAX` scalars, else CSR). With nothing in common there is nothing to solve.
+    scalars ``b_to_union`` (distinct). Returns the estimate and ``A^T I_Z A`` (dense up to
+    :data:`DENSE_MAX` scalars, else CSR with sorted indices and no duplicates). With nothing in
+    common there is nothing to solve.
     """
     n_a = z_a.size
     disjoint = b_to_union.size == 0 or int(b_to_union.min()) >= n_a
@@ -116,26 +134,84 @@ def solve_union(
         dense_a, dense_b = to_dense(info_a), to_dense(info_b)
         info = np.zeros((n, n))
         info[:n_a, :n_a] = dense_a
+        rows, cols = b_to_union[:, None], b_to_union[None, :]
         if disjoint:  # the least-squares solution is both estimates side by side
-            info[np.ix_(b_to_union, b_to_union)] = dense_b
+            info[rows, cols] = dense_b
             x = np.empty(n)
             x[:n_a] = z_a
             x[b_to_union] = z_b
             return x, info
-        info[np.ix_(b_to_union, b_to_union)] += dense_b
+        info[rows, cols] += dense_b
         rhs = np.zeros(n)
         rhs[:n_a] = dense_a @ z_a
         rhs[b_to_union] += dense_b @ z_b
         return solve_dense_spd(info, rhs), info
-    coo_a = to_csr(info_a).tocoo()
-    coo_b = to_csr(info_b).tocoo()
-    rows = np.concatenate([coo_a.row, b_to_union[coo_b.row]])
-    cols = np.concatenate([coo_a.col, b_to_union[coo_b.col]])
-    joined = sp.csr_matrix((np.concatenate([coo_a.data, coo_b.data]), (rows, cols)), shape=(n, n))
+    csr_a, csr_b = canonical_csr(info_a), canonical_csr(info_b)
+    joined = _padded(csr_a, n) + scatter_csr(csr_b, b_to_union, n)  # both canonical: one merge pass
+    if disjoint:
+        x = np.empty(n)
+        x[:n_a] = z_a
+        x[b_to_union] = z_b
+        return x, joined
     rhs = np.zeros(n)
-    rhs[:n_a] = coo_a.tocsr() @ z_a
-    rhs[b_to_union] += coo_b.tocsr() @ z_b
-    return solve_sparse_spd(joined, rhs), joined
+    rhs[:n_a] = csr_a @ z_a
+    rhs[b_to_union] += csr_b @ z_b
+    # CHOLMOD reads one triangle of a CSC matrix: the CSR arrays read as CSC are the transpose,
+    # whose lower triangle is the upper one of the (symmetric) information: no conversion.
+    as_csc = sp.csc_matrix((joined.data, joined.indices, joined.indptr), shape=(n, n))
+    as_csc.has_sorted_indices = True
+    return solve_sparse_spd(as_csc, rhs), joined
+
+
+def canonical_csr(matrix: InfoMatrix) -> sp.csr_matrix:
+    """Return an information matrix as CSR with sorted indices and no duplicates (a no-op when it is)."""
+    if not sp.issparse(matrix):
+        return sp.csr_matrix(matrix)
+    csr = matrix.tocsr()
+    if not csr.has_canonical_format:
+        csr = csr.copy()
+        csr.sum_duplicates()
+    return csr
+
+
+def _padded(matrix: sp.csr_matrix, n: int) -> sp.csr_matrix:
+    """Return ``matrix`` as the leading block of an ``(n, n)`` CSR matrix (shares its arrays)."""
+    k = matrix.shape[0]
+    indptr = np.empty(n + 1, dtype=matrix.indptr.dtype)
+    indptr[: k + 1] = matrix.indptr
+    indptr[k + 1 :] = matrix.indptr[-1]
+    out = sp.csr_matrix((matrix.data, matrix.indices, indptr), shape=(n, n))
+    out.has_sorted_indices = True
+    return out
+
+
+def scatter_csr(matrix: sp.csr_matrix, index: IntArray, n: int) -> sp.csr_matrix:
+    """Return ``P^T M P`` as canonical CSR: the ``(k, k)`` matrix ``M`` on the scalars ``index`` of an ``n`` state.
+
+    Args:
+        matrix: ``(k, k)`` canonical CSR.
+        index: ``(k,)`` distinct target indices.
+        n: size of the target state.
+
+    Increasing ``index`` keeps the order within rows: indices are relabelled, rows spread out.
+    Otherwise the entries of the transpose are grouped by row (a counting pass) and transposed
+    (a second pass, which leaves every row sorted): no per-row sort.
+    """
+    counts = np.diff(matrix.indptr)
+    cols = index[matrix.indices]
+    if index.size < 2 or bool(np.all(index[1:] > index[:-1])):
+        row_counts = np.zeros(n + 1, dtype=np.int64)
+        row_counts[index + 1] = counts
+        out = sp.csr_matrix((matrix.data, cols, np.cumsum(row_counts)), shape=(n, n))
+        out.has_sorted_indices = True
+        return out
+    rows = np.repeat(index, counts)
+    transposed = sp.coo_matrix((matrix.data, (cols, rows)), shape=(n, n))  # (P^T M P)^T
+    transposed.has_canonical_format = True  # no duplicates: tocsr need not sum (nor sort) them
+    csc = transposed.tocsr().tocsc()  # sorted CSC arrays of (P^T M P)^T = sorted CSR arrays of P^T M P
+    out = sp.csr_matrix((csc.data, csc.indices, csc.indptr), shape=(n, n))
+    out.has_sorted_indices = True
+    return out
 
 
 def to_end_frame(local_map: LocalMap) -> LocalMap:

@@ -1,0 +1,47 @@
+"""The reference-program comparison of the benchmark: found only when present, its time parsed, the table."""
+
+from __future__ import annotations
+
+from linear_slam_ros.evaluation.benchmark import _program_table
+from linear_slam_ros.evaluation.reference import find_program, parse_used_time, run_program
+
+
+def test_parse_used_time_takes_the_last_figure():
+    out = "Reading...\nUsed Time: 1.5 sec\nJoin...\nUsed Time: 2.58 sec\n"
+    assert parse_used_time(out) == 2.58
+    assert parse_used_time("Used Time: 3e-2 sec") == 0.03
+    assert parse_used_time("no time here") is None
+
+
+def test_find_program_only_when_an_executable_is_beside_the_datasets(tmp_path):
+    datasets = tmp_path / "datasets"
+    datasets.mkdir()
+    assert find_program(datasets) is None
+    program = tmp_path / "reference" / "LinearSLAM"
+    program.parent.mkdir()
+    program.write_text("#!/bin/sh\n")
+    assert find_program(datasets) is None  # not executable
+    program.chmod(0o755)
+    assert find_program(datasets) == program.resolve()
+
+
+def test_run_program_passes_one_blas_thread_and_reads_used_time(tmp_path):
+    program = tmp_path / "LinearSLAM"
+    program.write_text('#!/bin/sh\necho "args: $*"\necho "Used Time: ${OPENBLAS_NUM_THREADS}.25 sec"\n')
+    program.chmod(0o755)
+    run = run_program(program, tmp_path, 3, "2DPF", "dc")
+    assert run.seconds == 1.25 and run.error is None
+    program.write_text("#!/bin/sh\necho oops\nexit 3\n")
+    failed = run_program(program, tmp_path, 3, "2DPF", "sequential")
+    assert failed.seconds is None and "exit 3" in (failed.error or "")
+
+
+def test_table_says_when_the_program_is_absent_and_gives_ratios_when_present():
+    absent = [{"dataset": "d", "reference_program": {"path": None, "looked_for": "/x/reference/LinearSLAM"}}]
+    text = "\n".join(_program_table(absent))
+    assert "absent" in text and "/x/reference/LinearSLAM" in text
+    run = {"project_seconds": 1.0, "program_seconds": 2.0, "ratio": 0.5, "target_ratio": 1.0, "repeats": 3,
+           "program_error": None}
+    present = [{"dataset": "d", "reference_program": {"path": "/p", "runs": {"dc": run}}}]
+    text = "\n".join(_program_table(present))
+    assert "| d | dc | 1.000 | 2.000 | 3 | 0.500 | 1.00 | yes |" in text

@@ -1,4 +1,10 @@
-"""ament_python set-up of linear_slam_ros: console scripts land in lib/linear_slam_ros (setup.cfg)."""
+"""ament_python set-up of linear_slam_ros: console scripts land in lib/linear_slam_ros (setup.cfg).
+
+data_files install what ``ros2 launch`` and RViz find through the package's share directory:
+share/linear_slam_ros/{package.xml, config/*.yaml, launch/*.launch.py, rviz/*.rviz}.
+Console scripts are resolved when they run, not when they are installed: a script whose module
+does not exist yet still installs (and fails only when started).
+"""
 
 from glob import glob
 
@@ -14,6 +20,8 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
+        (f"share/{PACKAGE}/rviz", glob("rviz/*.rviz")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -29,6 +37,7 @@ setup(
             "bag_player = linear_slam_ros.ros.player:main",
             "bag_recorder = linear_slam_ros.ros.recorder:main",
             "demo = linear_slam_ros.ros.demo:main",
+            "sim_frontend = linear_slam_ros.ros.sim_frontend:main",
         ],
     },
 )

@@ -63,6 +63,7 @@ from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.pose_graph.graph import PoseGraph
 
 FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
 
 FORMAT_VERSION = 1
 MAP_KIND_LOCAL = 0
@@ -298,6 +299,20 @@ class _MapFields:
     what: str
 
 
+def symmetric_from_upper(rows: IntArray, cols: IntArray, vals: FloatArray, n: int) -> FloatArray | sp.csr_matrix:
+    """Return the symmetric ``(n, n)`` matrix of distinct upper-triangle triplets: dense up to
+    :data:`DENSE_MAX` (small systems are solved densely; never above), else CSR."""
+    if n <= DENSE_MAX:
+        dense = np.zeros((n, n))
+        dense[rows, cols] = vals
+        dense[cols, rows] = vals
+        return dense
+    off = rows != cols
+    both_rows = np.concatenate([rows, cols[off]])
+    both_cols = np.concatenate([cols, rows[off]])
+    return sp.csr_matrix((np.concatenate([vals, vals[off]]), (both_rows, both_cols)), shape=(n, n))
+
+
 def _decode_map_fields(
     labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int, limits: InputLimits
 ) -> _MapFields:
@@ -326,9 +341,7 @@ def _decode_map_fields(
         raise MessageError(f"{what}: information triplets must be in the upper triangle (row <= col)")
     if np.unique(rows * max(n, 1) + cols).size != rows.size:
         raise MessageError(f"{what}: repeated information entry")
-    upper = sp.coo_matrix((vals, (rows, cols)), shape=(n, n))
-    info = (upper + sp.triu(upper, k=1).T).tocsr()
-    stored = info.toarray() if n <= DENSE_MAX else info  # small systems are solved densely; never above
+    stored = symmetric_from_upper(rows, cols, vals, n)
     stats = None
     if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
         stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"], strict=False)}

@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
+import scipy.linalg.lapack
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
 from nav_msgs.msg import Path
@@ -18,8 +19,8 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.core.geometry import rotation
+from linear_slam_ros.core.frames import change_frame, estimate_in_frame
+from linear_slam_ros.core.geometry import pose_size, rotation
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
 from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 
@@ -31,33 +32,50 @@ ELLIPSE_SIGMA = 2.0
 
 def pose_to_msg(dim: int, pose: FloatArray) -> Pose:
     """Return a ``geometry_msgs/Pose`` of a dataset-convention pose."""
-    msg = Pose()
-    msg.position = Point(x=float(pose[0]), y=float(pose[1]), z=float(pose[2]) if dim == 3 else 0.0)
-    body_to_world = rotation(dim, np.asarray(pose[dim:], dtype=np.float64)).T
-    if dim == 2:
-        full = np.eye(3)
-        full[:2, :2] = body_to_world
-        body_to_world = full
-    qx, qy, qz, qw = Rotation.from_matrix(body_to_world).as_quat()
-    msg.orientation = Quaternion(x=float(qx), y=float(qy), z=float(qz), w=float(qw))
-    return msg
+    return pose_msgs(dim, np.asarray(pose, dtype=np.float64)[None, :])[0]
+
+
+def pose_msgs(dim: int, poses: FloatArray) -> list[Pose]:
+    """Return ``geometry_msgs/Pose`` messages of dataset-convention poses ``(n, 3)`` or ``(n, 6)`` (one rotation call)."""
+    if dim == 2:  # R(phi)^T turns by +phi about z
+        half = poses[:, 2] / 2.0
+        quats = np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)], -1)
+        quats[quats[:, 3] < 0] *= -1.0  # w >= 0, as scipy's canonical form
+        quat_rows = quats.tolist()
+    else:
+        body_to_world = np.swapaxes(rotation(dim, poses[:, dim:]), -1, -2)
+        quat_rows = Rotation.from_matrix(body_to_world).as_quat(canonical=True).reshape(-1, 4).tolist() if poses.shape[0] else []
+    xyz = np.zeros((poses.shape[0], 3))
+    xyz[:, :dim] = poses[:, :dim]
+    return [
+        Pose(position=Point(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+        for (x, y, z), (qx, qy, qz, qw) in zip(xyz.tolist(), quat_rows, strict=True)
+    ]
 
 
 def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
-    """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``."""
+    """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``, by pose id."""
     header = Header(stamp=stamp, frame_id=frame_id)
-    poses = [(global_map.frame_id, np.zeros(global_map.dim + (1 if global_map.dim == 2 else 3)))]
+    dim = global_map.dim
     pose_vars = np.flatnonzero(global_map.kinds == POSE)
-    poses += [(int(global_map.ids[i]), global_map.x[global_map.scalar_slice(int(i))]) for i in pose_vars]
-    poses.sort(key=lambda item: item[0])
+    ids = np.concatenate([[global_map.frame_id], global_map.ids[pose_vars]])
+    poses = np.zeros((ids.size, pose_size(dim)))
+    if pose_vars.size:
+        poses[1:] = global_map.x[global_map.scalar_index(pose_vars)].reshape(-1, pose_size(dim))
+    order = np.argsort(ids, kind="stable")
     msg = Path(header=header)
-    msg.poses = [PoseStamped(header=header, pose=pose_to_msg(global_map.dim, p)) for _, p in poses]
+    msg.poses = [PoseStamped(header=header, pose=p) for p in pose_msgs(dim, poses[order])]
     return msg
 
 
 def current_pose_msg(global_map: LocalMap, end_id: int, frame_id: str, stamp: Time) -> PoseStamped:
     """Return pose ``end_id`` of a map (in the first pose's frame) as ``geometry_msgs/PoseStamped``."""
-    return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=pose_to_msg(global_map.dim, global_map.pose(end_id)))
+    return pose_stamped_msg(global_map.dim, global_map.pose(end_id), frame_id, stamp)
+
+
+def pose_stamped_msg(dim: int, pose: FloatArray, frame_id: str, stamp: Time) -> PoseStamped:
+    """Return a dataset-convention pose (``(3,)`` or ``(6,)``, in frame ``frame_id``) as ``geometry_msgs/PoseStamped``."""
+    return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=pose_to_msg(dim, pose))
 
 
 def feature_markers(
@@ -117,11 +135,21 @@ def point_markers(
     return MarkerArray(markers=markers)
 
 
+def spd_inverse(matrix: FloatArray) -> FloatArray:
+    """Return the inverse of a symmetric positive-definite matrix by Cholesky (LAPACK potrf/potri: a third of ``inv``'s work)."""
+    factor, info = scipy.linalg.lapack.dpotrf(matrix, lower=0)
+    if info != 0:  # not positive definite (cannot happen for a joined map): the general inverse
+        return np.asarray(np.linalg.inv(matrix), dtype=np.float64)
+    inv_upper, info = scipy.linalg.lapack.dpotri(factor, lower=0)
+    upper = np.triu(inv_upper)
+    return np.asarray(upper + np.triu(upper, 1).T, dtype=np.float64)
+
+
 def feature_covariances(global_map: LocalMap, max_state: int) -> dict[int, FloatArray] | None:
     """Return each feature's marginal covariance, or ``None`` above ``max_state`` scalars."""
     if global_map.state_dim > max_state or not np.any(global_map.kinds == FEATURE):
         return None
-    cov = np.asarray(np.linalg.inv(global_map.info_dense()), dtype=np.float64)
+    cov = spd_inverse(global_map.info_dense())
     out: dict[int, FloatArray] = {}
     for i in np.flatnonzero(global_map.kinds == FEATURE).tolist():
         sl = global_map.scalar_slice(i)
@@ -168,7 +196,10 @@ def map_views(joined: object, first_pose_id: int | None, frame_id: str, stamp: T
 @map_views.register
 def _(joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
     first = joined.frame_id if first_pose_id is None else first_pose_id
-    in_first = joined if joined.frame_id == first else change_frame(joined, first)
+    if joined.state_dim <= ellipse_max_state:  # the ellipses need the information in the first frame too
+        in_first = joined if joined.frame_id == first else change_frame(joined, first)
+    else:
+        in_first = estimate_in_frame(joined, first)
     markers = feature_markers(in_first, frame_id, stamp, feature_covariances(in_first, ellipse_max_state))
     pose = current_pose_msg(in_first, joined.end_id, frame_id, stamp) if joined.end_id is not None else None
     return MapViews(path_msg(in_first, frame_id, stamp), markers, pose)

@@ -55,9 +55,13 @@ def test_front_end_example_produces_a_valid_local_map():
 
 
 def test_core_never_imports_ros():
+    """Only ros/ uses ROS and message libraries; the CLI, an application too, may read bags, through
+    msg_adapters.bags alone (rosbags: no ROS install), so that it takes a bag wherever it takes a dataset."""
     root = Path(__file__).resolve().parents[1] / "linear_slam_ros"
     for path in root.rglob("*.py"):
         if "ros" in path.relative_to(root).parts[:-1]:
             continue
         text = path.read_text()
+        if path.relative_to(root).parts[0] == "cli":
+            text = re.sub(r"^\s*from msg_adapters\.bags import .*$", "", text, flags=re.M)
         assert not re.search(r"^\s*(import|from)\s+(rclpy|rosbags|std_msgs|msg_adapters)", text, re.M), path

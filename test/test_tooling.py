@@ -1,4 +1,4 @@
-"""Lint and type check: ruff and mypy (configured in pyproject.toml, pinned in requirements.txt) find nothing."""
+"""Lint and type check: ruff and mypy (configured in pyproject.toml, pinned in requirements-dev.txt) find nothing."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ def _run(*args: str) -> subprocess.CompletedProcess[str]:
 
 def _require(module: str) -> None:
     if _run(module, "--version").returncode != 0:
-        pytest.fail(f"{module} is not installed in {sys.executable}: pip install -r requirements.txt")
+        pytest.fail(f"{module} is not installed in {sys.executable}: pip install -r requirements-dev.txt")
 
 
 def test_ruff_finds_nothing() -> None:

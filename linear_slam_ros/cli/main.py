@@ -11,33 +11,115 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-from linear_slam_ros.core.errors import LinearSlamError
+import numpy as np
+import numpy.typing as npt
+
+import linear_slam_ros.evaluation.city  # noqa: F401 - registers the synthetic:NAME sources (generated on demand)
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError
+from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.core.timing import latency_summary, peak_rss_mb
 from linear_slam_ros.evaluation.benchmark import run_benchmark
 from linear_slam_ros.evaluation.nonlinear import gauss_newton, refine
 from linear_slam_ros.evaluation.objective import MapObjective, chi2
 from linear_slam_ros.evaluation.runner import JoinRun, run_feature_join, run_join, run_joiner
 from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, resolve_dataset_dir, write_poses
-from linear_slam_ros.io.results import write_map, write_report, write_result
+from linear_slam_ros.io.results import write_map, write_report, write_result, write_tum_poses
 from linear_slam_ros.joiner.config import JoinerConfig
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
-from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
-from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps
-from linear_slam_ros.pose_graph.g2o import read_g2o
+from linear_slam_ros.joiner.strategy import PER_SUBMAP, FoldStrategy, JoinMethod, MapType
+from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps, star_local_maps
+from linear_slam_ros.pose_graph.g2o import read_g2o, write_g2o
 from linear_slam_ros.pose_graph.lago import lago
 
 logger = logging.getLogger("linear_slam_ros")
 
+FloatArray = npt.NDArray[np.float64]
+
 PROGRESS_MIN_MAPS = 100
 """Show a progress bar when joining at least this many local maps."""
+
+
+FORMATS = ("reference", "tum", "g2o")
+"""Output formats of join, refine and lago: ``poses.txt`` (+ ``features.txt``), ``poses.tum``, ``graph.g2o``."""
+
+
+class HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
+    """``--help`` shows each option's default, except for required options and ``None`` (no value)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.required or action.default is None:
+            return action.help
+        return super()._get_help_string(action)
 
 
 def _progress(total: int, desc: str):  # type: ignore[no-untyped-def]
     from tqdm import tqdm
 
     return tqdm(total=total, desc=desc, unit="map", disable=None if total >= PROGRESS_MIN_MAPS else True, leave=False)
+
+
+def read_source(path: Path, kind: str | None = None) -> Dataset:
+    """Read what a command's dataset argument names: a dataset folder or archive, a rosbag2 bag of
+    ``local_map`` / ``pose_graph`` messages (``bags/vicpark200``), or a ``.g2o`` file.
+
+    A g2o pose graph (2D or 3D) becomes pose-only local maps, one per pose that edges leave
+    (:func:`linear_slam_ros.pose_graph.chunks.star_local_maps`), of kind ``2DPG`` / ``3DPG``.
+
+    Raises:
+        LinearSlamError: the file cannot be read or is malformed; ``kind`` contradicts a g2o file.
+    """
+    if (path / "metadata.yaml").is_file():
+        return read_bag(path, kind)
+    if path.suffix != ".g2o":
+        return read_dataset(path, kind=kind)
+    graph = read_g2o(path)
+    map_kind = MapKind.PG2D if graph.dim == 2 else MapKind.PG3D
+    if kind is not None and MapKind(kind) is not map_kind:
+        raise ConfigError(f"{path} is a {graph.dim}D pose graph ({map_kind.value}), not {MapKind(kind).value}")
+    return Dataset(path.stem, map_kind, tuple(star_local_maps(graph)))
+
+
+def read_bag(path: Path, kind: str | None = None) -> Dataset:
+    """Read a rosbag2 bag's ``local_map`` / ``pose_graph`` messages as a dataset named after the bag's folder.
+
+    The CLI is an application like the ROS nodes: it reads bags through :mod:`msg_adapters.bags`
+    (rosbags, no ROS install), imported only when a bag is given. The maps are the ones the node
+    would join (:func:`msg_adapters.bags.read_bag_submaps`); the kind is the bag's recorded one.
+
+    Raises:
+        DatasetError: the bag cannot be read or holds no valid submap; ``kind`` is not the bag's.
+    """
+    from msg_adapters.bags import read_bag_submaps
+
+    submaps = read_bag_submaps(path, None if kind is None else MapKind(kind).value)
+    return Dataset(path.name, MapKind(submaps.kind), submaps.maps)
+
+
+def pose_values(local_map: LocalMap) -> dict[int, FloatArray]:
+    """Return every pose of a map by id, its frame pose (the origin) included."""
+    poses = {local_map.frame_id: np.zeros(pose_size(local_map.dim))}
+    for i in np.flatnonzero(local_map.kinds == POSE).tolist():
+        poses[int(local_map.ids[i])] = local_map.x[local_map.scalar_slice(i)]
+    return poses
+
+
+def _check_formats(formats: Sequence[str], map_type: MapType, dataset: Dataset | None = None) -> None:
+    """Raise :class:`ConfigError` when the result cannot be written in one of ``formats``."""
+    extra = sorted(set(formats) - {"reference"})
+    if map_type is MapType.FEATURE_ONLY and extra:
+        raise ConfigError(f"--format {' '.join(extra)} writes poses; feature-only maps hold none (use reference)")
+    if dataset is not None and "g2o" in formats and dataset.kind.has_features:
+        raise ConfigError(f"--format g2o writes a pose graph; {dataset.name} is a pose-feature dataset ({dataset.kind.value})")
+
+
+def _write_g2o(out_dir: Path, source: Path, dataset: Dataset, joined: LocalMap) -> None:
+    """Write ``graph.g2o``: the input's edges (a g2o file's own, else the local maps') and the joined poses."""
+    graph = read_g2o(source) if source.suffix == ".g2o" else graph_from_local_maps(dataset.maps)
+    write_g2o(out_dir / "graph.g2o", graph, pose_values(joined))
 
 
 def join_dataset(dataset: Dataset, method: JoinMethod) -> JoinRun:
@@ -75,14 +157,28 @@ def cmd_refine(args: argparse.Namespace) -> int:
 
 
 def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
-    config = JoinerConfig.from_mapping({"mode": args.method, "map_type": args.map_type}, online=False)
-    dataset = read_dataset(args.dataset, kind=args.kind)
+    config = JoinerConfig.from_mapping(
+        {"mode": args.method, "map_type": args.map_type, "gate_probability": args.gate_probability}, online=False
+    )
+    gate = config.gate_probability or None
+    strategy_type: Any = type(get_strategy(config.mode, config.map_type))
+    if gate is not None and strategy_type.marginal is FoldStrategy.marginal:
+        raise ConfigError(
+            f"--gate-probability {gate:g}: method {config.mode.value!r} with map type {config.map_type.value!r} "
+            "cannot gate (use 'online-dc' or 'sequential' with map type 'as-is')"
+        )
+    gated: list[dict[str, object]] = []
+    formats = list(args.format)
+    _check_formats(formats, config.map_type)
+    dataset = read_source(args.dataset, kind=args.kind)
+    _check_formats(formats, config.map_type, dataset)
+    pose_formats = [f for f in formats if f != "g2o"]
     run: JoinRun | None = None
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
-    if args.initial_state is not None or args.save_state is not None:
+    if args.initial_state is not None or args.save_state is not None or gate is not None:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
-            run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update)
+            run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         if args.save_state is not None:
             write_snapshot(args.save_state, saved)
@@ -93,8 +189,12 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     if run is None:
         run = join_dataset(dataset, method)
     if not refine_too:
-        in_origin = write_result(args.out, run.result, origin)
+        in_origin = write_result(args.out, run.result, origin, pose_formats)
+        if "g2o" in formats:
+            _write_g2o(args.out, args.dataset, dataset, in_origin)
         report = report_for(run, dataset, chi2(in_origin, dataset.maps))
+        if gate is not None:
+            report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated)})
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
@@ -104,7 +204,9 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     t0 = time.perf_counter()
     refined = refine(run.result, dataset.maps)
     seconds_refine = time.perf_counter() - t0
-    write_result(args.out, refined.map, origin)
+    in_origin = write_result(args.out, refined.map, origin, pose_formats)
+    if "g2o" in formats:
+        _write_g2o(args.out, args.dataset, dataset, in_origin)
     report = report_for(run, dataset, refined.chi2)
     report.update(
         {
@@ -136,9 +238,12 @@ def _join_feature_only(args: argparse.Namespace, dataset: Dataset, refine_too: b
 
 
 def cmd_lago(args: argparse.Namespace) -> int:
-    """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine."""
+    """Estimate a 2D pose graph by LAGO (g2o file or pose-only dataset); optionally refine.
+
+    The poses written are the refined ones with ``--refine``, LAGO's otherwise.
+    """
     source = Path(args.graph)
-    graph = read_g2o(source) if source.suffix == ".g2o" else graph_from_local_maps(list(read_dataset(source).maps))
+    graph = read_g2o(source) if source.suffix == ".g2o" else graph_from_local_maps(list(read_source(source).maps))
     result = lago(graph, args.anchor)
     edges = edge_maps(graph)
     report: dict[str, object] = {
@@ -155,8 +260,15 @@ def cmd_lago(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         refined = gauss_newton(result.map, edges)
         report.update({"nls_chi2": refined.chi2, "nls_iterations": refined.iterations, "nls_seconds": time.perf_counter() - t0})
+        out_map = refined.map
+    report["poses_written"] = "nls" if args.refine else "lago"
     args.out.mkdir(parents=True, exist_ok=True)
-    write_poses(args.out / "poses.txt", out_map, out_map.frame_id)
+    if "reference" in args.format:
+        write_poses(args.out / "poses.txt", out_map, out_map.frame_id)
+    if "tum" in args.format:
+        write_tum_poses(args.out / "poses.tum", out_map, out_map.frame_id)
+    if "g2o" in args.format:
+        write_g2o(args.out / "graph.g2o", graph, pose_values(out_map))
     write_report(args.out, report)
     logger.info("%s: LAGO chi2 %.3f in %.3f s", source.name, report["chi2"], result.seconds)
     return 0
@@ -181,15 +293,28 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """Return the argument parser of ``python -m linear_slam_ros``."""
-    parser = argparse.ArgumentParser(prog="python -m linear_slam_ros", description=__doc__)
+    defaults = HelpWithDefaults
+    parser = argparse.ArgumentParser(prog="python -m linear_slam_ros", description=__doc__, formatter_class=defaults)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
 
+    def output_format(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--format", nargs="+", choices=FORMATS, default=["reference"],
+            help="result files: reference = poses.txt (k x y phi / k x y z alpha beta gamma) and features.txt; "
+                 "tum = poses.tum (timestamp tx ty tz qx qy qz qw, the timestamp is the pose id); "
+                 "g2o = graph.g2o (the input's pose graph with the result as vertex estimates; pose-only input)",
+        )
+
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("dataset", type=Path, help="folder of localmap_<i>.txt files or a .tar.xz archive")
-        p.add_argument("--method", choices=[m.value for m in JoinMethod], default=JoinMethod.DC.value)
+        p.add_argument("dataset", type=Path,
+                       help="folder of localmap_<i>.txt files, a .tar.xz archive, a bag of local_map or pose_graph "
+                            "messages (e.g. bags/vicpark200), or a .g2o pose graph (2D or 3D: "
+                            "joined as pose-only local maps, one per pose that edges leave)")
+        p.add_argument("--method", choices=[m.value for m in JoinMethod], default=JoinMethod.DC.value, help="joining method")
         p.add_argument("--kind", choices=[k.value for k in MapKind], default=None, help="override the detected map kind")
         p.add_argument("--out", type=Path, required=True, help="output folder")
+        output_format(p)
         p.add_argument(
             "--map-type", choices=[t.value for t in MapType], default=MapType.AS_IS.value,
             help="feature-only: marginalise poses and join feature-only (D-SLAM) maps in feature-defined frames",
@@ -197,28 +322,34 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--initial-state", type=Path, default=None,
                        help="continue from a joiner state file (the node's ~/save_map or --save-state); "
                             "the dataset's maps get the sequence numbers that follow it")
+        p.add_argument("--gate-probability", type=float, default=0.0,
+                       help="χ² gate before each join at this probability (online-dc, sequential); 0: off. "
+                            "report.json then lists the gate decisions (gated, n_gated)")
         p.add_argument("--save-state", type=Path, default=None,
                        help="write the joiner's exact state here (for --initial-state, or the node's initial_map)")
 
-    p_join = sub.add_parser("join", help="join a dataset's local maps")
+    p_join = sub.add_parser("join", help="join a dataset's local maps", formatter_class=defaults)
     common(p_join)
     p_join.set_defaults(func=cmd_join)
-    p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)")
+    p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)", formatter_class=defaults)
     common(p_ref)
     p_ref.set_defaults(func=cmd_refine)
-    p_lago = sub.add_parser("lago", help="closed-form estimate of a 2D pose graph (LAGO)")
-    p_lago.add_argument("graph", type=Path, help="a .g2o file (VERTEX_SE2/EDGE_SE2) or a pose-only dataset")
-    p_lago.add_argument("--out", type=Path, required=True)
-    p_lago.add_argument("--anchor", type=int, default=None, help="pose held at the origin (default: smallest id)")
-    p_lago.add_argument("--refine", action="store_true", help="also run Gauss-Newton from the LAGO estimate")
+    p_lago = sub.add_parser("lago", help="closed-form estimate of a 2D pose graph (LAGO)", formatter_class=defaults)
+    p_lago.add_argument("graph", type=Path, help="a 2D .g2o file (VERTEX_SE2/EDGE_SE2) or a 2D pose-only dataset or bag")
+    p_lago.add_argument("--out", type=Path, required=True, help="output folder")
+    p_lago.add_argument("--anchor", type=int, default=None, help="pose held at the origin (None: the smallest id)")
+    p_lago.add_argument("--refine", action="store_true",
+                        help="also run Gauss-Newton from the LAGO estimate and write the refined poses")
+    output_format(p_lago)
     p_lago.set_defaults(func=cmd_lago)
-    p_unpack = sub.add_parser("unpack", help="unpack every dataset archive into .cache/datasets")
-    p_unpack.add_argument("datasets_dir", type=Path, nargs="?", default=Path("../shared/datasets"))
+    p_unpack = sub.add_parser("unpack", help="unpack every dataset archive into .cache/datasets", formatter_class=defaults)
+    p_unpack.add_argument("datasets_dir", type=Path, nargs="?", default=Path("../shared/datasets"),
+                          help="folder of *.tar.xz archives")
     p_unpack.set_defaults(func=cmd_unpack)
-    p_bench = sub.add_parser("benchmark", help="every dataset with every method; figures to --out")
-    p_bench.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"))
-    p_bench.add_argument("--out", type=Path, default=Path("out/benchmark"))
-    p_bench.add_argument("--methods", nargs="+", default=[m.value for m in JoinMethod])
+    p_bench = sub.add_parser("benchmark", help="every dataset with every method; figures to --out", formatter_class=defaults)
+    p_bench.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"), help="folder of *.tar.xz archives")
+    p_bench.add_argument("--out", type=Path, default=Path("out/benchmark"), help="output folder")
+    p_bench.add_argument("--methods", nargs="+", default=[m.value for m in JoinMethod], help="joining methods")
     p_bench.add_argument("--only", nargs="+", default=None, help="dataset names to run (default: all)")
     p_bench.set_defaults(func=cmd_benchmark)
     return parser
@@ -230,8 +361,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))
-    except LinearSlamError as exc:
-        logger.error("%s", exc)
+    except (LinearSlamError, OSError) as exc:  # bad input or an unwritable output: one line, no traceback
+        logger.error("%s", " ".join(str(exc).split()))
         return 2
 
 

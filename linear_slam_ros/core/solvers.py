@@ -2,11 +2,14 @@
 
 Sparse backends, best first (measured on the joined maps' information matrices, README):
 
-1. CHOLMOD through ``scikit-sparse``, built against the system SuiteSparse and OpenBLAS
+1. the system CHOLMOD through ``ctypes`` (:mod:`linear_slam_ros.core.cholmod`): the same library
+   and numbers as 2., bit for bit, but it lets other threads run while it factorises (the node's
+   background merges need that);
+2. CHOLMOD through ``scikit-sparse``, built against the system SuiteSparse and OpenBLAS
    (``make`` installs Debian's ``libsuitesparse-dev`` and ``libopenblas-dev``);
-2. CHOLMOD through the ``cholespy`` wheel, which bundles the reference BLAS: fine on very sparse
+3. CHOLMOD through the ``cholespy`` wheel, which bundles the reference BLAS: fine on very sparse
    systems, 2x slower on the joined maps' partly dense ones;
-3. ``scipy.sparse.linalg.splu`` with a symmetric ordering.
+4. ``scipy.sparse.linalg.splu`` with a symmetric ordering.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from linear_slam_ros.core import cholmod
 from linear_slam_ros.core.errors import SolverError
 
 try:  # pragma: no cover - exercised through whichever backend is installed
@@ -38,7 +42,7 @@ logger = logging.getLogger(__name__)
 _trtrs = scipy.linalg.lapack.dtrtrs  # what get_lapack_funcs("trtrs", dtype=np.float64) returns
 
 FloatArray = npt.NDArray[np.float64]
-SparseBackend = Literal["sksparse", "cholmod", "scipy"]
+SparseBackend = Literal["libcholmod", "sksparse", "cholmod", "scipy"]
 Backend = Literal["auto", SparseBackend]
 
 DENSE_MAX = 120
@@ -48,6 +52,8 @@ Manhattan and VicPark6898 between 80 and 250)."""
 
 def backend_name() -> SparseBackend:
     """Return the sparse backend ``auto`` uses."""
+    if cholmod.available():
+        return "libcholmod"
     if _cholmod_cholesky is not None:
         return "sksparse"
     return "cholmod" if _cholespy is not None else "scipy"
@@ -80,7 +86,8 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     Args:
         matrix: ``(n, n)`` symmetric positive definite, any scipy sparse format.
         rhs: ``(n,)`` or ``(n, k)``.
-        backend: ``"sksparse"`` (CHOLMOD, system BLAS), ``"cholmod"`` (cholespy), ``"scipy"``
+        backend: ``"libcholmod"`` (CHOLMOD through ctypes), ``"sksparse"`` (CHOLMOD through
+            scikit-sparse), ``"cholmod"`` (cholespy), ``"scipy"``
             (SuperLU with a symmetric ordering) or ``"auto"`` (the best installed).
 
     Raises:
@@ -89,11 +96,13 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     rhs = np.ascontiguousarray(rhs, dtype=np.float64)
     if backend == "auto":
         backend = backend_name()
+    if backend == "libcholmod":
+        return cholmod.solve_spd(matrix, rhs)
     if backend == "sksparse":
         if _cholmod_cholesky is None:
             raise SolverError("backend 'sksparse' requested but scikit-sparse is not installed")
         try:
-            factor = _cholmod_cholesky(sp.csc_matrix(matrix))
+            factor = _cholmod_cholesky(matrix if isinstance(matrix, sp.csc_matrix) else sp.csc_matrix(matrix))
             # CHOLMOD may pick an LDL^T factorisation, which does not fail on indefinite input
             if np.any(factor.D() <= 0):
                 raise _NotPD("non-positive pivot")

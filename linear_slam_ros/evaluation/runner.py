@@ -82,11 +82,15 @@ def run_joiner(
     map_type: MapType | str = MapType.AS_IS,
     initial: SavedJoiner | None = None,
     progress: Callable[[int], None] | None = None,
+    gate_probability: float | None = None,
+    gated: list[dict[str, Any]] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
     The maps get the sequence numbers that follow the saved state's (1, 2, ... from scratch), so
     the saved result can be continued by the node or by another run. Timing is per submap.
+    With ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
+    ``gated`` (:meth:`GateRecord.as_dict`) and are not errors.
 
     Returns:
         The timed run and the joiner's final saved value (for ``--save-state``).
@@ -97,9 +101,9 @@ def run_joiner(
     """
     if not maps:
         raise InvalidMapError("no local maps to join")
-    joiner = Joiner(JoinMethod(method), MapType(map_type))
+    joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability)
     reasons: list[str] = []
-    joiner.on_reject = lambda _reason, message: reasons.append(message)
+    joiner.on_reject = lambda reason, message: None if reason == "gated" else reasons.append(message)
     if initial is not None:
         joiner.restore(initial)
     first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
@@ -118,6 +122,8 @@ def run_joiner(
     if result is None:
         raise InvalidMapError(f"no joined map: the {len(maps)} local maps gave none")
     run = JoinRun(strategy.method, result, seconds, tuple(joiner.join_seconds), len(maps), PER_SUBMAP)
+    if gated is not None:
+        gated.extend(g.as_dict() for g in joiner.gated)
     return run, joiner.save()
 
 

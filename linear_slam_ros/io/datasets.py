@@ -3,22 +3,33 @@
 Format (``shared/datasets/README.md``): ``localmap_<i>.txt`` holds ``Ref``, ``n``, ``n`` lines
 ``<id> <value>`` and the ``n x n`` information matrix. Pose-feature datasets tag pose ``k`` as id
 ``-k`` and features with ids ``> 0``; pose-only datasets tag pose ``k`` as ``k``.
+
+Synthetic sources: ``read_dataset("synthetic:NAME[@SEED]")`` returns a generated stream (e.g.
+``synthetic:city2d-20000``). This layer only knows the name and the cache: generators register
+themselves with :func:`register_synthetic` (``linear_slam_ros.evaluation.city`` does when
+imported); without one, the stream is read from its cache file (:func:`synthetic_cache_path`,
+an ``.npz`` written by :func:`write_dataset_npz`).
 """
 
 from __future__ import annotations
 
 import enum
 import logging
+import lzma
 import os
 import re
+import shutil
 import tarfile
-from collections.abc import Iterable
+import tempfile
+import zlib
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
+from tqdm import tqdm
 
 from linear_slam_ros.core.errors import DatasetError, InvalidMapError
 from linear_slam_ros.core.geometry import pose_size
@@ -30,6 +41,9 @@ logger = logging.getLogger(__name__)
 FloatArray = npt.NDArray[np.float64]
 
 _LOCALMAP_RE = re.compile(r"^localmap_(\d+)\.txt$")
+
+PROGRESS_DELAY = 1.0
+"""Seconds after which unpacking and reading show a progress bar, on stderr when it is a terminal."""
 
 
 class MapKind(str, enum.Enum):  # noqa: UP042 - enum.StrEnum would change str() and format() of the members
@@ -87,13 +101,24 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("LINEAR_SLAM_CACHE", Path.cwd() / ".cache" / "datasets"))
 
 
-def parse_local_map_text(text: str, name: str) -> RawLocalMap:
+def parse_local_map_text(text: str, name: str, source: str | None = None) -> RawLocalMap:
     """Parse the text of one ``localmap_<i>.txt``.
 
+    Args:
+        text: the file's text.
+        name: the map's name (``localmap_<i>``).
+        source: the file, as error messages name it (default ``name``).
+
     Raises:
-        DatasetError: the numbers do not match the format; the message names the file.
+        DatasetError: the numbers do not match the format; the message names the file (and
+            ``file:line`` for a token that is not a number).
     """
-    nums = np.array(text.split(), dtype=np.float64) if "\t" in text else np.fromstring(text, sep=" ")
+    where = source if source is not None else name
+    try:
+        nums = np.array(text.split(), dtype=np.float64) if "\t" in text else np.fromstring(text, sep=" ")
+    except ValueError:
+        raise DatasetError(_garbage_message(text, where)) from None
+    raw_name, name = name, where  # messages name the file, the map keeps its name
     if nums.size < 2:
         raise DatasetError(f"{name}: expected 'Ref' and 'n' at the top, found {nums.size} numbers")
     ref, n_f = nums[0], nums[1]
@@ -107,7 +132,18 @@ def parse_local_map_text(text: str, name: str) -> RawLocalMap:
     if np.any(pairs[:, 0] != np.round(pairs[:, 0])):
         raise DatasetError(f"{name}: variable ids must be integers")
     info = nums[2 + 2 * n :].reshape(n, n)
-    return RawLocalMap(name, int(ref), pairs[:, 0].astype(np.int64), pairs[:, 1].copy(), info)
+    return RawLocalMap(raw_name, int(ref), pairs[:, 0].astype(np.int64), pairs[:, 1].copy(), info)
+
+
+def _garbage_message(text: str, where: str) -> str:
+    """Return ``where:line: 'token' is not a number`` for the first token of ``text`` float() rejects."""
+    for number, line in enumerate(text.splitlines(), start=1):
+        for token in line.split():
+            try:
+                float(token)
+            except ValueError:
+                return f"{where}:{number}: {token[:40]!r} is not a number"
+    return f"{where}: not a list of numbers"
 
 
 def detect_kind(raw: RawLocalMap) -> MapKind:
@@ -182,14 +218,34 @@ def _unpack(archive: Path, cache_dir: Path) -> Path:
     if marker.exists():
         return target
     cache_dir.mkdir(parents=True, exist_ok=True)
-    logger.info("unpacking %s into %s", archive, cache_dir)
+    logger.debug("unpacking %s into %s", archive, cache_dir)
+    # into a scratch folder first: a truncated archive leaves nothing half-unpacked behind
+    scratch = Path(tempfile.mkdtemp(prefix=f".{stem}.", dir=cache_dir))
     try:
-        with tarfile.open(archive) as tar:
-            tar.extractall(cache_dir, filter="data")
-    except (tarfile.TarError, OSError) as exc:
-        raise DatasetError(f"cannot unpack {archive}: {exc}") from None
-    if not target.is_dir():
-        raise DatasetError(f"{archive} did not unpack to a folder named {stem!r}")
+        with tarfile.open(archive) as tar, tqdm(desc=f"unpacking {archive.name}", unit="file", disable=None,
+                                                delay=PROGRESS_DELAY, leave=False) as bar:
+            for member in tar:
+                tar.extract(member, scratch, filter="data")
+                bar.update()
+            # read on to the end of the compressed stream: its checksum (xz, gzip) is verified only
+            # there, and damage that still decompresses would otherwise unpack as garbage maps
+            while tar.fileobj is not None and tar.fileobj.read(1 << 20):
+                pass
+        if not (scratch / stem).is_dir():
+            raise DatasetError(f"{archive} did not unpack to a folder named {stem!r}")
+        if target.exists():  # an earlier, unfinished unpack (no marker)
+            shutil.rmtree(target)
+        (scratch / stem).rename(target)
+    except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, zlib.error) as exc:
+        if isinstance(exc, EOFError):
+            reason = "the archive is truncated"
+        elif isinstance(exc, tarfile.ReadError):
+            reason = "not a tar archive, or a truncated or corrupt one"
+        else:
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise DatasetError(f"cannot unpack {archive}: {reason}") from None
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
     marker.touch()
     return target
 
@@ -212,6 +268,11 @@ def list_local_map_files(folder: Path) -> list[Path]:
         if m:
             found.append((int(m.group(1)), entry))
     if not found:
+        if (folder / "metadata.yaml").is_file():  # bags are read with rosbags, outside this layer
+            raise DatasetError(
+                f"{folder} is a rosbag2 bag, not a dataset folder: the CLI and the bag tools read it "
+                "(msg_adapters.bags.read_bag_submaps)"
+            )
         raise DatasetError(f"{folder}: no localmap_<i>.txt files")
     found.sort()
     numbers = [i for i, _ in found]
@@ -222,30 +283,176 @@ def list_local_map_files(folder: Path) -> list[Path]:
 
 
 def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir: Path | None = None) -> Dataset:
-    """Read a dataset from a folder or archive.
+    """Read a dataset from a folder or archive, or a synthetic stream.
 
     Args:
-        path: folder of ``localmap_<i>.txt`` or a ``.tar.xz`` archive (unpacked into ``cache_dir``).
-        kind: map kind; detected from the first map's ids when ``None``.
-        cache_dir: where archives are unpacked (default :func:`default_cache_dir`).
+        path: folder of ``localmap_<i>.txt``, a ``.tar.xz`` archive (unpacked into ``cache_dir``),
+            or ``synthetic:NAME[@SEED]`` (:func:`read_synthetic`).
+        kind: map kind; detected from the first map's ids when ``None`` (a synthetic stream
+            has its own kind, which ``kind`` must match).
+        cache_dir: where archives are unpacked and synthetic streams cached (default
+            :func:`default_cache_dir`).
 
     Raises:
-        DatasetError: unreadable or malformed files.
+        DatasetError: unreadable or malformed files, an unknown or ungenerated synthetic stream.
         InvalidMapError: a map breaks an invariant.
     """
+    if str(path).startswith(SYNTHETIC_PREFIX):
+        dataset = read_synthetic(str(path), cache_dir)
+        if kind is not None and MapKind(kind) != dataset.kind:
+            raise DatasetError(f"{path} is a {dataset.kind.value} stream, not {MapKind(kind).value}")
+        return dataset
     folder = resolve_dataset_dir(path, cache_dir)
     files = list_local_map_files(folder)
-    raws = []
-    for f in files:
-        try:
-            text = f.read_text()
-        except OSError as exc:
-            raise DatasetError(f"cannot read {f}: {exc}") from None
-        raws.append(parse_local_map_text(text, f.stem))
-    map_kind = MapKind(kind) if kind is not None else detect_kind(raws[0])
-    maps = tuple(to_local_map(r, map_kind) for r in raws)
     name = Path(path).name.removesuffix(".tar.xz")
-    return Dataset(name, map_kind, maps)
+    map_kind = MapKind(kind) if kind is not None else None
+    maps = []
+    # a bar on a terminal (stderr) when reading takes over PROGRESS_DELAY s, as for VicPark_6898 (7 s)
+    with tqdm(total=len(files), desc=f"reading {name}", unit="map", disable=None, delay=PROGRESS_DELAY, leave=False) as bar:
+        for f in files:
+            try:
+                text = f.read_text()
+            except (OSError, UnicodeDecodeError) as exc:
+                raise DatasetError(f"cannot read {f}: {exc}") from None
+            raw = parse_local_map_text(text, f.stem, source=str(f))
+            if map_kind is None:
+                map_kind = detect_kind(raw)
+            maps.append(to_local_map(raw, map_kind))
+            bar.update()
+    assert map_kind is not None  # list_local_map_files returns at least one file
+    return Dataset(name, map_kind, tuple(maps))
+
+
+# ---------------------------------------------------------------------------- synthetic sources
+
+SYNTHETIC_PREFIX = "synthetic:"
+"""Prefix of a synthetic stream's name where a dataset path is expected."""
+
+SyntheticSource = Callable[[str, int, "Path | None"], Dataset]
+"""A generator: ``(name, seed, cache_dir) -> Dataset`` (it may read and write the cache)."""
+
+_SYNTHETIC_SOURCES: dict[str, SyntheticSource] = {}
+
+
+def register_synthetic(family: str, source: SyntheticSource) -> None:
+    """Make ``synthetic:<family>-<size>[@seed]`` readable by :func:`read_dataset` through ``source``.
+
+    Called by the generators' module (a higher layer) when it is imported.
+    """
+    _SYNTHETIC_SOURCES[family] = source
+
+
+def parse_synthetic_name(spec: str) -> tuple[str, int]:
+    """Return ``(name, seed)`` of ``[synthetic:]NAME[@SEED]`` (seed 0 when not given).
+
+    Raises:
+        DatasetError: an empty name or a seed that is not a non-negative integer.
+    """
+    body = spec.removeprefix(SYNTHETIC_PREFIX)
+    name, _, seed = body.partition("@")
+    if not name or (seed and not seed.isdigit()):
+        raise DatasetError(f"malformed synthetic stream {spec!r}: expected {SYNTHETIC_PREFIX}NAME[@SEED], e.g. city2d-20000@1")
+    return name, int(seed or 0)
+
+
+def synthetic_cache_path(name: str, seed: int, cache_dir: Path | None = None) -> Path:
+    """Return the cache file of synthetic stream ``name`` with ``seed``: ``<cache>/synthetic/<name>-seed<seed>.npz``."""
+    return (cache_dir or default_cache_dir()) / "synthetic" / f"{name}-seed{seed}.npz"
+
+
+def read_synthetic(spec: str, cache_dir: Path | None = None) -> Dataset:
+    """Return the synthetic stream ``[synthetic:]NAME[@SEED]``: generated (or cached) by its
+    registered source, else read from its cache file.
+
+    Raises:
+        DatasetError: malformed name, no registered source and no cache file.
+    """
+    name, seed = parse_synthetic_name(spec)
+    source = _SYNTHETIC_SOURCES.get(name.rpartition("-")[0])
+    if source is not None:
+        return source(name, seed, cache_dir)
+    path = synthetic_cache_path(name, seed, cache_dir)
+    if not path.is_file():
+        raise DatasetError(
+            f"synthetic stream {name!r} (seed {seed}) is not generated: no {path}. Run "
+            f"'python -m linear_slam_ros.evaluation.city {name} --seed {seed}' or 'make bags' first"
+        )
+    return read_dataset_npz(path)[0]
+
+
+def write_dataset_npz(path: Path, dataset: Dataset, extra: Mapping[str, npt.NDArray[np.generic]] | None = None) -> None:
+    """Write a dataset (and ``extra`` arrays) to one ``.npz`` file, atomically (temporary file, rename).
+
+    Per map: frame and end pose, variable ids and kinds, state and the upper triangle of the
+    information (row-major), all concatenated; ``extra`` names must not start with ``maps_``.
+    """
+    maps = dataset.maps
+    uppers = [m.info_dense()[np.triu_indices(m.x.size)] for m in maps]
+    arrays: dict[str, npt.NDArray[np.generic]] = {
+        "maps_name": np.array(dataset.name),
+        "maps_kind": np.array(dataset.kind.value),
+        "maps_frame": np.array([m.frame_id for m in maps], np.int64),
+        "maps_end": np.array([-1 if m.end_id is None else m.end_id for m in maps], np.int64),
+        "maps_n_vars": np.array([m.n_vars for m in maps], np.int64),
+        "maps_ids": np.concatenate([m.ids for m in maps]) if maps else np.zeros(0, np.int64),
+        "maps_kinds": np.concatenate([m.kinds for m in maps]) if maps else np.zeros(0, np.int8),
+        "maps_x": np.concatenate([m.x for m in maps]) if maps else np.zeros(0),
+        "maps_info_upper": np.concatenate(uppers) if uppers else np.zeros(0),
+        **(extra or {}),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.npz")
+    np.savez(tmp, **arrays)  # type: ignore[arg-type]
+    os.replace(tmp, path)
+
+
+def read_dataset_npz(path: Path) -> tuple[Dataset, dict[str, npt.NDArray[np.generic]]]:
+    """Read a dataset written by :func:`write_dataset_npz`; return it and the extra arrays.
+
+    Every map is validated as when read from text.
+
+    Raises:
+        DatasetError: unreadable file or inconsistent sizes.
+        InvalidMapError: a map breaks an invariant.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"cannot read {path}: {exc}") from None
+    try:
+        kind = MapKind(str(arrays["maps_kind"]))
+        n_vars, ids, kinds = arrays["maps_n_vars"], arrays["maps_ids"], arrays["maps_kinds"].astype(np.int8)
+        x, upper = arrays["maps_x"], arrays["maps_info_upper"]
+        frames, ends = arrays["maps_frame"], arrays["maps_end"]
+        name = str(arrays["maps_name"])
+    except (KeyError, ValueError) as exc:
+        raise DatasetError(f"{path}: not a dataset file ({exc})") from None
+    dim = kind.dim
+    maps = []
+    v = s = u = 0
+    for i, nv in enumerate(n_vars.tolist()):
+        k = kinds[v : v + nv]
+        n = int(np.where(k == POSE, pose_size(dim), dim).sum())
+        tri = n * (n + 1) // 2
+        if v + nv > ids.size or s + n > x.size or u + tri > upper.size:
+            raise DatasetError(f"{path}: map {i + 1} runs past the end of the arrays")
+        info = np.zeros((n, n))
+        info[np.triu_indices(n)] = upper[u : u + tri]
+        info = info + np.triu(info, 1).T
+        end: int | None = int(ends[i]) if int(ends[i]) >= 0 else None
+        maps.append(LocalMap(dim, int(frames[i]), end, ids[v : v + nv], k, x[s : s + n], info, name=f"{name}_{i + 1}"))
+        v, s, u = v + nv, s + n, u + tri
+    extra = {key: value for key, value in arrays.items() if not key.startswith("maps_")}
+    return Dataset(name, kind, tuple(maps)), extra
+
+
+def check_origin_frame(local_map: LocalMap, origin_id: int) -> None:
+    """Raise :class:`InvalidMapError` unless ``local_map`` is in the frame of pose ``origin_id`` (what pose writers need)."""
+    if local_map.frame_id != origin_id:
+        raise InvalidMapError(
+            f"poses must be written in the frame of pose {origin_id}, map {local_map.name!r} is in {local_map.frame_id}"
+        )
 
 
 def write_poses(path: Path, local_map: LocalMap, origin_id: int = 0) -> None:
@@ -256,10 +463,7 @@ def write_poses(path: Path, local_map: LocalMap, origin_id: int = 0) -> None:
     Raises:
         InvalidMapError: the map is not in the frame of ``origin_id``.
     """
-    if local_map.frame_id != origin_id:
-        raise InvalidMapError(
-            f"poses must be written in the frame of pose {origin_id}, map {local_map.name!r} is in {local_map.frame_id}"
-        )
+    check_origin_frame(local_map, origin_id)
     rows = [(origin_id, np.zeros(pose_size(local_map.dim)))]
     for i in np.flatnonzero(local_map.kinds == POSE).tolist():
         rows.append((int(local_map.ids[i]), local_map.x[local_map.scalar_slice(i)]))
@@ -289,6 +493,8 @@ __all__ = [
     "MapKind",
     "InvalidMapError",
     "read_dataset",
+    "read_synthetic",
+    "register_synthetic",
     "write_poses",
     "write_features",
 ]

@@ -19,6 +19,7 @@ from typing import Any
 from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.core.limits import LIMIT_NAMES, NODE_LIMITS, InputLimits
 from linear_slam_ros.joiner.registry import methods
+from linear_slam_ros.joiner.strategies.sequential import SEQUENTIAL_MAX_SCALARS
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
 
@@ -29,6 +30,11 @@ class OutputFrame(enum.StrEnum):
     """Robocentric: the newest end pose."""
     FIRST_POSE = "first_pose"
     """The frame pose of the first joined submap."""
+
+
+DEFAULT_BACKGROUND_MERGE_SCALARS = 100
+"""Online D&C merges above this many state scalars go to the background (a merge of two maps of
+~50 scalars each is dense and takes well under a millisecond)."""
 
 
 @dataclass(frozen=True)
@@ -55,9 +61,10 @@ class JoinerConfig:
     """Everything the joiner is configured with (units in the descriptions)."""
 
     mode: JoinMethod = _param(
-        JoinMethod.SEQUENTIAL,
-        "joining method: 'sequential' (exact, robocentric end-pose frame) or 'online-dc' "
-        "(online divide and conquer, for long streams)", read_only=True,
+        JoinMethod.ONLINE_DC,
+        "joining method: 'online-dc' (online divide and conquer: any stream length, large merges in the "
+        "background) or 'sequential' (the paper's exact sequential joining: O(n^2) per submap, for maps up to "
+        f"{SEQUENTIAL_MAX_SCALARS} state scalars)", read_only=True,
     )
     map_type: MapType = _param(
         MapType.AS_IS,
@@ -67,6 +74,11 @@ class JoinerConfig:
     output_frame: OutputFrame = _param(
         OutputFrame.END_POSE,
         "frame of the global_map message: 'end_pose' (robocentric, newest end pose) or 'first_pose'",
+    )
+    background_merge_scalars: int = _param(
+        DEFAULT_BACKGROUND_MERGE_SCALARS,
+        "online-dc: merges of more state scalars than this run on a background thread, so that no arrival waits "
+        "for a large merge; 0 runs every merge on arrival", read_only=True, bounds=(0, 1_000_000_000),
     )
     publish_rate: float = _param(2.0, "maximum rate of the output topics, Hz", bounds=(0.05, 100.0))
     map_frame: str = _param("map", "frame_id of the viewing topics (the first pose's frame)")
@@ -83,6 +95,10 @@ class JoinerConfig:
     ellipse_max_state: int = _param(
         1500, "largest global state (scalars) for which feature covariance ellipses are drawn", bounds=(0, 1_000_000),
     )
+    timing_file: str = _param(
+        "", "CSV written at shutdown with each joined submap's arrival time, join time and pose/global_map freshness "
+        "(for benchmarks); empty: none", read_only=True,
+    )
     summary_period: float = _param(5.0, "seconds between info-level summary lines and /diagnostics", bounds=(0.1, 3600.0))
     save_directory: str = _param(
         "saved_map", "folder where ~/save_map writes poses.txt, features.txt, a bag and the exact state (state.npz)",
@@ -98,6 +114,11 @@ class JoinerConfig:
     initial_map: str = _param(
         "", "state file loaded at start-up, to continue mapping on it (ignored when state_dir holds a state)",
         read_only=True,
+    )
+    gate_probability: float = _param(
+        0.0,
+        "chi-square gate: probability of the NIS quantile a submap's common variables must pass before joining "
+        "(failing variables are split off, counted as 'gated'); 0 turns the gate off", bounds=(0.0, 0.999999999),
     )
     # Input limits (linear_slam_ros.core.limits.InputLimits, same names): a submap beyond one is rejected.
     max_state_scalars: int = _param(

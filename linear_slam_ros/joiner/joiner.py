@@ -22,6 +22,8 @@ from linear_slam_ros.core.timing import latency
 from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joining.background import MergeWorker
+from linear_slam_ros.joining.gate import GateResult, gate_submap
 
 logger = logging.getLogger(__name__)
 
@@ -68,6 +70,52 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
     joined = state.strategy.step(state.joined, submap)
     first = state.first_pose_id if state.first_pose_id is not None else submap.frame_id
     return replace(state, joined=joined, first_pose_id=first, n_joined=state.n_joined + 1, next_seq=seq + 1, last_seq=seq)
+
+
+def gate_step(state: JoinerState, submap: LocalMap, probability: float) -> GateResult:
+    """Test a submap against the state's global map by the χ² gate: a pure function of ``(state, submap)``.
+
+    The NIS of the variables the submap shares with the map (after bringing both into one frame)
+    against ``chi2.ppf(probability, dof)``; failing variables are split off, or the submap is gated
+    whole (:func:`~linear_slam_ros.joining.gate.gate_submap`). Strategies that cannot gate
+    (``marginal`` returns ``None``) pass everything.
+
+    Raises:
+        SolverError: a covariance is not positive definite.
+    """
+    if state.n_joined == 0:
+        return GateResult(probability, 0.0, 0, float("inf"), submap=submap)
+    strategy, joined = state.strategy, state.joined
+    return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability)
+
+
+@dataclass(frozen=True)
+class GateRecord:
+    """A gate decision that kept something out of the map (for report.json's ``gated``, and the node).
+
+    Attributes:
+        submap: sequence number of the submap.
+        name: the submap's name.
+        variables: ids of the variables split off (all common variables' worst ones when gated whole).
+        kinds: their kinds (0 pose, 1 feature).
+        nis: NIS of all common variables before the decision; ``dof``: their scalars.
+        threshold: ``chi2.ppf(gate_probability, dof)``.
+        rejected: the whole submap was gated (else only ``variables`` were, and the rest joined).
+    """
+
+    submap: int
+    name: str
+    variables: tuple[int, ...]
+    kinds: tuple[int, ...]
+    nis: float
+    dof: int
+    threshold: float
+    rejected: bool
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready: ``{"submap", "name", "variables", "kinds", "nis", "dof", "threshold", "rejected"}``."""
+        return {"submap": self.submap, "name": self.name, "variables": list(self.variables), "kinds": list(self.kinds),
+                "nis": self.nis, "dof": self.dof, "threshold": self.threshold, "rejected": self.rejected}
 
 
 def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> Any | None:
@@ -141,6 +189,17 @@ class Joiner:
         reorder_timeout: seconds without progress after which a gap is skipped.
         reorder_max_bytes: bytes of state and information the reorder buffer may hold.
         clock: monotonic clock of :attr:`reorder_timeout`, s.
+        defer_above: joins of more state scalars than this are deferred to ``worker`` (strategies
+            with large joins: online divide and conquer); ``None`` joins everything on arrival.
+        worker: computes deferred joins in the background (owned by the caller, who stops it).
+        gate_probability: χ² probability of the gate run before each join (:func:`gate_step`);
+            ``None`` or 0 turns it off. A submap that fails has its failing common variables split
+            off, or all of them when more than half fail ("gated whole"); the rest (its new
+            variables, the pose chain) is joined. Every such decision is recorded in :attr:`gated`
+            and counted (and reported) by :meth:`reject` under reason ``gated``, so a submap with
+            gated variables counts as joined and under ``gated``. A submap left with nothing uses up
+            its sequence number and leaves the map unchanged.
+        gated: every gate decision that kept something out of the map, in order.
         state: the current state (:meth:`restore` a saved one).
         rejected: count of rejected submaps by reason.
         join_seconds: wall time of each successful join.
@@ -153,7 +212,11 @@ class Joiner:
     reorder_timeout: float = 5.0
     reorder_max_bytes: int = 256 << 20
     clock: Callable[[], float] = time.monotonic
+    defer_above: int | None = None
+    worker: MergeWorker | None = None
+    gate_probability: float | None = None
     state: JoinerState = field(init=False)
+    gated: list[GateRecord] = field(default_factory=list)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
@@ -163,14 +226,23 @@ class Joiner:
     _progress_at: float = field(default=0.0)
 
     def __post_init__(self) -> None:
-        self.state = new_state(JoinMethod(self.mode), MapType(self.map_type))
+        if self.gate_probability is not None and not 0.0 <= self.gate_probability < 1.0:
+            raise ConfigError(f"gate_probability={self.gate_probability!r} must be in [0, 1) (0 or None: no gate)")
+        self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
         self._progress_at = self.clock()
 
+    def _scheduled(self, state: JoinerState) -> JoinerState:
+        """Return ``state`` set to defer its large joins as this joiner is configured to."""
+        return replace(state, joined=state.strategy.defer(state.joined, self.defer_above))
+
     def reset(self) -> None:
-        """Forget every submap, count and buffered message."""
-        self.state = new_state(self.state.method, self.state.map_type)
+        """Forget every submap, count and buffered message (queued background joins included)."""
+        if self.worker is not None:
+            self.worker.clear()
+        self.state = self._scheduled(new_state(self.state.method, self.state.map_type))
         self.rejected.clear()
         self.join_seconds.clear()
+        self.gated.clear()
         self._pending.clear()
         self._pending_bytes = 0
         self._progress_at = self.clock()
@@ -195,7 +267,9 @@ class Joiner:
                 f"{saved.state.map_type.value!r}; this joiner runs mode={self.state.method.value!r}, "
                 f"map_type={self.state.map_type.value!r}"
             )
-        self.state = saved.state
+        if self.worker is not None:
+            self.worker.clear()
+        self.state = self._scheduled(saved.state)
         self.rejected = collections.Counter(dict(saved.rejected))
         self._pending = dict(saved.pending)
         self._pending_bytes = sum(_nbytes(m) for m in self._pending.values())
@@ -304,13 +378,38 @@ class Joiner:
             return []
         t0 = time.perf_counter()
         try:
+            if self.gate_probability:
+                gated = self._gate(submap, seq)
+                if gated is None:
+                    return []
+                submap = gated
             self.state = join_step(self.state, submap, seq)
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"submap seq {seq} rejected: {exc}")
             return []
+        if self.worker is not None:
+            self.worker.submit(self.state.strategy.pending(self.state.joined))
         self.join_seconds.append(time.perf_counter() - t0)
         self._progress_at = self.clock()
         return [seq]
+
+    def _gate(self, submap: LocalMap, seq: int) -> LocalMap | None:
+        """Run the gate; return what to join (``None``: nothing left, its number used up)."""
+        assert self.gate_probability is not None
+        result = gate_step(self.state, submap, self.gate_probability)
+        if result.passed:
+            return submap
+        variables = result.split if not result.rejected else result.worst
+        record = GateRecord(
+            seq, submap.name, tuple(v.var_id for v in variables), tuple(v.kind for v in variables), result.nis,
+            result.dof, result.threshold, result.rejected,
+        )
+        self.gated.append(record)
+        self.reject("gated", result.message(f"submap seq {seq} ({submap.name!r})"))
+        if result.submap is None:  # nothing left to join: its number is used, the map unchanged
+            self.state = replace(self.state, next_seq=seq + 1, last_seq=seq)
+            self._progress_at = self.clock()
+        return result.submap
 
     def stats(self) -> dict[str, float]:
         """Return counts and join-latency figures (ms) for the global map message."""

@@ -43,7 +43,7 @@ from linear_slam_ros.feature_only.precondition import Group
 from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.joiner import JoinerState, SavedJoiner
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
-from linear_slam_ros.joining.divide_conquer import OnlineDCState
+from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState
 from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 
 FORMAT_NAME = "linear_slam_ros.state"
@@ -102,6 +102,8 @@ class _Encoder:
             return {"__csr__": arrays, "shape": list(value.shape)}
         if isinstance(value, tuple | list):
             return {"__tuple__": [self.encode(v) for v in value]}
+        if isinstance(value, Deferred):  # a join still to compute: written as its result (waits for it)
+            return self.encode(value.value())
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             name = type(value).__name__
             if name not in CLASSES:

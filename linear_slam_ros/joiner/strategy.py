@@ -19,8 +19,13 @@ import time
 from collections.abc import Callable, Sequence
 from typing import ClassVar, Generic, Protocol, TypeVar
 
+import numpy as np
+import numpy.typing as npt
+
 from linear_slam_ros.core.errors import InvalidMapError
 from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.joining.divide_conquer import Deferred
+from linear_slam_ros.joining.gate import Marginal
 
 
 class JoinMethod(enum.StrEnum):
@@ -49,6 +54,8 @@ PER_SUBMAP = "per submap"
 PER_JOIN = "per pairwise join"
 Progress = Callable[[int], None]
 """Called with the number of steps (submaps or pairwise joins) just completed."""
+PoseEstimate = tuple[int, npt.NDArray[np.float64]]
+"""A pose id and its pose (``(3,)`` or ``(6,)``) in a stated frame."""
 
 
 class JoinStrategy(Protocol[StateT, ResultT]):
@@ -95,6 +102,39 @@ class JoinStrategy(Protocol[StateT, ResultT]):
         """Return ``result`` in the frame of pose ``pose_id`` (unchanged for maps without pose frames)."""
         ...
 
+    def defer(self, state: StateT, above_scalars: int | None) -> StateT:
+        """Return ``state`` set to defer its joins of more than ``above_scalars`` state scalars.
+
+        A deferred join is computed by a background worker (:meth:`pending` lists them) or by
+        :meth:`result`, whichever comes first; deferring changes when a join is computed, never
+        its result. ``None`` joins everything in :meth:`step`. Strategies without large joins
+        return ``state`` unchanged.
+        """
+        ...
+
+    def pending(self, state: StateT) -> list[Deferred]:
+        """Return the deferred joins of ``state`` not computed yet, inputs before results."""
+        ...
+
+    def current_pose(self, state: StateT, frame_pose_id: int) -> PoseEstimate | None:
+        """Return the newest end pose in pose ``frame_pose_id``'s frame, cheaply (no global solve).
+
+        ``None`` when the strategy's maps have no poses or the pose is not known yet.
+        """
+        ...
+
+    def marginal(self, state: StateT, keys: npt.NDArray[np.int64]) -> Marginal | None:
+        """Return the joined map's marginal (estimate and covariance) of the variables among ``keys`` it holds.
+
+        What the χ² gate (:mod:`~linear_slam_ros.joining.gate`) compares a submap with, in the map's
+        frame, without forming the whole joined map when the strategy can avoid it. ``None`` when
+        the map holds none of them, or the strategy cannot gate (batch and feature-only strategies).
+
+        Raises:
+            SolverError: an information or covariance matrix is not positive definite.
+        """
+        ...
+
     def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:
         """Join a whole sequence, timing each step.
 
@@ -131,6 +171,22 @@ class FoldStrategy(Generic[StateT, ResultT]):
 
     def result(self, state: StateT) -> ResultT | None:  # pragma: no cover - abstract
         raise NotImplementedError
+
+    def defer(self, state: StateT, above_scalars: int | None) -> StateT:
+        """Return ``state`` (nothing to defer; see :meth:`JoinStrategy.defer`)."""
+        return state
+
+    def pending(self, state: StateT) -> list[Deferred]:
+        """Return no deferred joins."""
+        return []
+
+    def current_pose(self, state: StateT, frame_pose_id: int) -> PoseEstimate | None:
+        """Return ``None``: no cheap current pose (see :meth:`JoinStrategy.current_pose`)."""
+        return None
+
+    def marginal(self, state: StateT, keys: npt.NDArray[np.int64]) -> Marginal | None:
+        """Return ``None``: this strategy cannot gate (see :meth:`JoinStrategy.marginal`)."""
+        return None
 
     def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:
         """Fold :meth:`step` over ``maps``, one timed step per submap, then take :meth:`result`."""

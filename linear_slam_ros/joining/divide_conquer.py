@@ -9,9 +9,10 @@ feature-only maps pass their own join.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
@@ -103,6 +104,117 @@ def join_divide_and_conquer(
     return to_end_frame(divide_and_conquer(maps, join_at_seam, on_join))
 
 
+class Deferred:
+    """A pairwise join at the seam, described now and computed at most once, by whoever needs it first.
+
+    It stands for ``join_at_seam(left, right)`` as a value: :meth:`value` returns that map,
+    computing it on first use (and the inputs' first if they are deferred too). A background
+    worker (:class:`~linear_slam_ros.joining.background.MergeWorker`) computes deferred joins
+    ahead of time, in the order they were made, so that the thread joining arrivals never runs
+    a large merge; the result is the same map whichever thread computes it. Thread-safe: one
+    lock per join, taken parent before inputs, so two threads never wait on each other in a cycle.
+
+    Attributes:
+        dim: 2 or 3.
+        end_id: end pose of the joined map (the later input's, or the earlier's if it has none).
+        count: submaps the joined map is made of.
+        size: state scalars of the two inputs together (an upper bound of the joined map's).
+    """
+
+    def __init__(self, left: Entry, right: Entry, count: int) -> None:
+        self.dim: int = left.dim
+        self.end_id: int | None = right.end_id if right.end_id is not None else left.end_id
+        self.count = count
+        self.size = entry_size(left) + entry_size(right)
+        self._inputs: tuple[Entry, Entry] | None = (left, right)
+        self._result: LocalMap | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def done(self) -> bool:
+        """Whether the joined map has been computed."""
+        return self._result is not None
+
+    @property
+    def inputs(self) -> tuple[Entry, Entry] | None:
+        """The two entries joined (``None`` once computed: they are released)."""
+        return self._inputs
+
+    def value(self) -> LocalMap:
+        """Return the joined map, computing it (and any deferred input) if nobody has yet.
+
+        Raises:
+            LinearSlamError: the join fails (the same error a synchronous join would raise).
+        """
+        result = self._result
+        if result is not None:
+            return result
+        with self._lock:
+            if self._result is None:
+                assert self._inputs is not None
+                left, right = (resolve(e) for e in self._inputs)
+                result = join_at_seam(left, right)
+                _ = result.key_set  # built here, not by the thread that next looks a pose up in it
+                self._result = result
+                self._inputs = None  # the inputs' memory goes as soon as nothing else holds them
+            return self._result
+
+
+Entry = LocalMap | Deferred
+"""A stack entry of online divide and conquer: a joined map, or a join still to compute."""
+
+
+def resolve(entry: Entry) -> LocalMap:
+    """Return the map an entry stands for (computing a deferred join if needed)."""
+    return entry.value() if isinstance(entry, Deferred) else entry
+
+
+def entry_size(entry: Entry) -> int:
+    """State scalars of an entry (for a deferred join, its inputs' together)."""
+    return entry.size if isinstance(entry, Deferred) else entry.state_dim
+
+
+def pending_joins(stack: Sequence[Entry]) -> list[Deferred]:
+    """Return the deferred joins not yet computed that ``stack`` depends on, inputs before results."""
+    out: list[Deferred] = []
+    seen: set[int] = set()
+
+    def visit(entry: Entry) -> None:
+        if not isinstance(entry, Deferred) or entry.done or id(entry) in seen:
+            return
+        inputs = entry.inputs
+        if inputs is not None:
+            visit(inputs[0])
+            visit(inputs[1])
+        if not entry.done:
+            seen.add(id(entry))
+            out.append(entry)
+
+    for e in stack:
+        visit(e)
+    return out
+
+
+def leaf_maps(stack: Sequence[Entry]) -> list[LocalMap]:
+    """Return maps that together make up ``stack``, in order, without computing any join.
+
+    A computed entry is its map; a deferred one is replaced by its inputs, recursively. Every
+    map starts where the one before it ends (it is in, or holds, that end pose), as the stack's
+    entries do, so poses can be chained along them (:func:`~linear_slam_ros.joining.chain.chain_end_pose`).
+    """
+    out: list[LocalMap] = []
+    for entry in stack:
+        if isinstance(entry, Deferred):
+            inputs = entry.inputs
+            if inputs is None:  # computed meanwhile
+                out.append(entry.value())
+            else:
+                out.extend(leaf_maps(inputs))
+        else:
+            out.append(entry)
+    return out
+
+
 @dataclass(frozen=True)
 class OnlineDCState:
     """State of online divide-and-conquer joining: a binary-counter stack of joined maps.
@@ -110,14 +222,18 @@ class OnlineDCState:
     Attributes:
         stack: joined maps, oldest first, each in the frame of its seam (or its own start);
             ``counts[i]`` submaps make up ``stack[i]``, and counts strictly decrease along the
-            stack (each a power of two).
+            stack (each a power of two). An entry may be a :class:`Deferred` join.
         counts: number of submaps in each stack entry.
         n_joined: total number of submaps joined.
+        defer_above: joins of entries with more state scalars than this together are deferred
+            (left to a background worker), as is any join with a deferred input; ``None`` joins
+            everything at once. Only when a join is computed depends on it, never its result.
     """
 
-    stack: tuple[LocalMap, ...] = ()
+    stack: tuple[Entry, ...] = ()
     counts: tuple[int, ...] = ()
     n_joined: int = 0
+    defer_above: int | None = None
 
 
 def online_dc_step(state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
@@ -125,28 +241,48 @@ def online_dc_step(state: OnlineDCState, submap: LocalMap) -> OnlineDCState:
 
     Each merge is one :func:`join_at_seam`; a submap triggers as many merges as trailing ones
     in the binary count of joined submaps, so the amortised cost per submap stays constant and
-    the largest merge happens once every power of two.
+    the largest merge happens once every power of two. With ``state.defer_above`` set, the large
+    merges are :class:`Deferred` instead: the step stays cheap, and the merges are the same.
 
     Raises:
         FrameError: the submap neither is in nor holds the end pose of the newest stack entry.
     """
     if state.stack:
-        if submap.dim != state.stack[-1].dim:  # checked now: an odd submap waits on the stack unjoined
-            raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {state.stack[-1].dim}D")
-        seam = state.stack[-1].end_id
+        top = state.stack[-1]
+        if submap.dim != top.dim:  # checked now: an odd submap waits on the stack unjoined
+            raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {top.dim}D")
+        seam = top.end_id
         if seam is not None and submap.frame_id != seam and not submap.has_pose(seam):
             raise FrameError(
                 f"submap {submap.name!r} is in the frame of pose {submap.frame_id} and does not hold pose {seam}, "
                 "the end pose of the global map"
             )
-    new_stack, new_counts = counter_push(state.stack, state.counts, submap, join_at_seam)
-    return OnlineDCState(new_stack, new_counts, state.n_joined + 1)
+    if state.defer_above is None:
+        new_stack, new_counts = counter_push(state.stack, state.counts, submap, _join_now)
+        return replace(state, stack=new_stack, counts=new_counts, n_joined=state.n_joined + 1)
+    limit = state.defer_above
+    stack: list[Entry] = [e.value() if isinstance(e, Deferred) and e.done else e for e in state.stack]
+    stack.append(submap)
+    counts = [*state.counts, 1]
+    while len(counts) >= 2 and counts[-1] == counts[-2]:
+        right, left = stack.pop(), stack.pop()
+        count = counts.pop() + counts.pop()
+        big = isinstance(left, Deferred) or isinstance(right, Deferred) or entry_size(left) + entry_size(right) > limit
+        stack.append(Deferred(left, right, count) if big else join_at_seam(left, right))  # type: ignore[arg-type]
+        counts.append(count)
+    return replace(state, stack=tuple(stack), counts=tuple(counts), n_joined=state.n_joined + 1)
+
+
+def _join_now(left: Entry, right: Entry) -> Entry:
+    return join_at_seam(resolve(left), resolve(right))
 
 
 def online_dc_result(state: OnlineDCState) -> LocalMap:
     """Merge the stack at the seams; the result is in the frame of the newest end pose.
 
+    Deferred joins not computed yet are computed first (or waited for, if a worker is on them).
+
     Raises:
         InvalidMapError: nothing joined yet.
     """
-    return to_end_frame(merge_stack(state.stack, join_at_seam))
+    return to_end_frame(merge_stack([resolve(e) for e in state.stack], join_at_seam))

@@ -93,12 +93,14 @@ def block_diagonal(blocks: FloatArray) -> InfoMatrix:
     scalars, CSR above (built from the blocks' entries, never densified)."""
     m, p, _ = blocks.shape
     n = m * p
+    if n <= DENSE_MAX:
+        dense = np.zeros((m, p, m, p))
+        dense[np.arange(m), :, np.arange(m), :] = blocks
+        return dense.reshape(n, n)
     index = np.arange(n).reshape(m, p)
     rows = np.repeat(index, p, axis=1).ravel()  # block b, row i, column j -> b*p + i
     cols = np.tile(index, (1, p)).ravel()  # -> b*p + j
     matrix = sp.csr_matrix((blocks.ravel(), (rows, cols)), shape=(n, n))
-    if n <= DENSE_MAX:
-        return matrix.toarray()
     matrix.eliminate_zeros()  # the structure sp.csr_matrix(dense) would have
     return matrix
 
@@ -185,10 +187,10 @@ def edge_maps(graph: PoseGraph) -> list[LocalMap]:
 
 
 def graph_from_local_maps(maps: Sequence[LocalMap]) -> PoseGraph:
-    """Rebuild a pose graph from 2D pose-only local maps.
+    """Rebuild a pose graph from pose-only local maps (2D or 3D).
 
     Args:
-        maps: 2D maps holding only poses.
+        maps: maps of one dimension holding only poses.
 
     Returns:
         The graph of every map's edges, in map order: from the map's frame pose to each of its
@@ -196,12 +198,14 @@ def graph_from_local_maps(maps: Sequence[LocalMap]) -> PoseGraph:
         information as the edge's (cross terms dropped).
 
     Raises:
-        GraphError: a map is 3D or holds features, or the edges make an invalid graph.
+        GraphError: a map holds features or differs in dimension from the first, or the edges
+            make an invalid graph.
     """
     f, t, z, info = [], [], [], []
+    dim = maps[0].dim if maps else 2
     for m in maps:
-        if m.dim != 2 or np.any(m.kinds != POSE):
-            raise GraphError(f"map {m.name!r} is not a 2D pose-only map")
+        if m.dim != dim or np.any(m.kinds != POSE):
+            raise GraphError(f"map {m.name!r} is not a {dim}D pose-only map")
         dense = m.info_dense()
         for i in range(m.n_vars):
             sl = m.scalar_slice(i)
@@ -209,7 +213,40 @@ def graph_from_local_maps(maps: Sequence[LocalMap]) -> PoseGraph:
             t.append(int(m.ids[i]))
             z.append(m.x[sl])
             info.append(dense[sl, sl])
-    return PoseGraph.from_edges(f, t, np.array(z), np.array(info), dim=2)
+    p = pose_size(dim)
+    return PoseGraph.from_edges(f, t, np.array(z).reshape(-1, p), np.array(info).reshape(-1, p, p), dim=dim)
+
+
+def star_local_maps(graph: PoseGraph, limits: InputLimits | None = None) -> list[LocalMap]:
+    """Split a graph (2D or 3D) into pose-only local maps, one star per pose edges leave.
+
+    This is how Linear SLAM joins a pose graph (a g2o file): the edges leaving pose ``i`` are
+    a local map in the frame of pose ``i`` (:func:`star_chunk_to_local_map`, repeated edges
+    fused), and the maps are joined in increasing ``i``, as the benchmark pose-only datasets
+    are. The graph objective is the sum of the maps' χ² (up to the constant of fused repeats).
+
+    Args:
+        graph: any graph; poses that no edge leaves are reached from other stars.
+        limits: the numeric bounds the maps are validated with (default limits when None).
+
+    Returns:
+        The maps, by increasing frame pose, named ``"<graph name>: edges from pose <i>"``.
+
+    Raises:
+        GraphError: a map is invalid.
+    """
+    order = np.argsort(graph.from_ids, kind="stable")
+    frames, starts = np.unique(graph.from_ids[order], return_index=True)
+    bounds = np.append(starts, order.size)
+    maps = []
+    for k, frame in enumerate(frames.tolist()):
+        edges = order[bounds[k] : bounds[k + 1]]
+        star = PoseGraph.from_edges(
+            graph.from_ids[edges], graph.to_ids[edges], graph.measurements[edges], graph.information[edges],
+            dim=graph.dim, name=f"{graph.name}: edges from pose {frame}", limits=limits,
+        )
+        maps.append(star_chunk_to_local_map(star, limits))
+    return maps
 
 
 def chunk_end_pose(from_ids: IntArray, to_ids: IntArray, frame: int) -> int:

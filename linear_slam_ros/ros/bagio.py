@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import shutil
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import NamedTuple
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
 from linear_slam_ros.core.errors import DatasetError
-from msg_adapters.bags import MSGTYPE, TYPESTORE, serialize
+from msg_adapters.bags import MSGTYPE, TYPESTORE, read_records, serialize
 from msg_adapters.layout import Encoded
 
 
@@ -47,11 +47,13 @@ def qos(latched: bool) -> Qos:
 
 
 def write_messages(
-    path: Path, records: Iterable[tuple[str, int, Encoded | bytes]], latched: set[str] | None = None, overwrite: bool = False
+    path: Path, records: Iterable[tuple[str, int, Encoded | bytes]], latched: set[str] | None = None, overwrite: bool = False,
+    custom_data: Mapping[str, str] | None = None,
 ) -> int:
     """Write ``(topic, time_ns, message)`` records to an MCAP rosbag2 bag; return the count.
 
-    Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes).
+    Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes);
+    ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml).
     """
     path = Path(path)
     if path.exists():
@@ -61,6 +63,8 @@ def write_messages(
     path.parent.mkdir(parents=True, exist_ok=True)
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+    for key, value in (custom_data or {}).items():
+        writer.set_custom_data(key, value)
     count = 0
     connections = {}
     with writer:
@@ -76,18 +80,10 @@ def write_messages(
 
 
 def read_messages(path: Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-    """Yield the records of a bag in time order (optionally only some topics)."""
-    wanted = set(topics) if topics is not None else None
-    try:
-        with Reader(Path(path)) as reader:
-            conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
-            for conn, time_ns, raw in reader.messages(connections=conns):
-                latched = any(
-                    getattr(q, "durability", None) == QosDurability.TRANSIENT_LOCAL
-                    for q in getattr(conn.ext, "offered_qos_profiles", [])
-                )
-                yield BagRecord(conn.topic, int(time_ns), bytes(raw), latched)
-    except Exception as exc:  # rosbags raises several types for unreadable bags
-        if isinstance(exc, DatasetError):
-            raise
-        raise DatasetError(f"cannot read bag {path}: {exc}") from None
+    """Yield the records of a bag in time order (optionally only some topics).
+
+    Raises:
+        DatasetError: the bag cannot be read.
+    """
+    for record in read_records(path, topics):
+        yield BagRecord(*record)

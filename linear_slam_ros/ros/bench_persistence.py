@@ -51,7 +51,7 @@ from linear_slam_ros.ros.bagio import BagRecord, read_messages
 from linear_slam_ros.ros.demo import joiner_command
 from linear_slam_ros.ros.player import play
 from linear_slam_ros.ros.process import loopback_env, stop_process
-from linear_slam_ros.ros.spin import LatestMessage, node_session, spin_until
+from linear_slam_ros.ros.spin import LatestMessage, diagnostic_values, node_session, spin_until
 from msg_adapters import MapMessage, decode_map
 from msg_adapters.ros import parts
 
@@ -87,13 +87,7 @@ class Diagnostics:
         for status in msg.status:
             if status.name != self.status_name:
                 continue
-            values = {}
-            for kv in status.values:
-                try:
-                    values[kv.key] = float(kv.value)
-                except ValueError:
-                    continue
-            self.previous, self.values = self.values, values
+            self.previous, self.values = self.values, diagnostic_values(status)
             self.count += 1
             self.received_at = time.monotonic()
 

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import logging
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
@@ -32,11 +34,13 @@ from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageErr
 from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
+from linear_slam_ros.core.timing import latency, peak_rss_mb
 from linear_slam_ros.io.results import write_map
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
 from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, global_result
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
+from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
 from linear_slam_ros.ros.journal import JournalError
 from linear_slam_ros.ros.persistence import StateStore
@@ -44,11 +48,33 @@ from linear_slam_ros.ros.qos import inbound_qos, latched_qos
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_empty_global, encode_global
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import empty_views, map_views
+from msg_adapters.views import empty_views, map_views, pose_stamped_msg
 
 NODE_NAME = "joiner"
-PUBLISH_DUTY = 0.25
-"""Largest fraction of wall time spent computing outputs (the rest is left to joining)."""
+PUBLISH_DUTY = 0.5
+"""Largest fraction of wall time spent computing outputs. Their heavy parts (CHOLMOD, sparse
+products) leave the interpreter lock to the arrivals, so this bounds the second core's share
+taken from the background merges."""
+SWITCH_INTERVAL = 0.0005
+"""s, the interpreter's thread switch interval: an arrival waits at most this long for the
+background merge thread to hand over the interpreter lock (Python's default is 5 ms)."""
+
+
+class _RosLogHandler(logging.Handler):
+    """Forwards the core's log records (``linear_slam_ros.*``) to the node's logger."""
+
+    def __init__(self, node: Node) -> None:
+        super().__init__(logging.INFO)
+        self._logger = node.get_logger()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = f"{record.name}: {record.getMessage()}"
+        if record.levelno >= logging.ERROR:
+            self._logger.error(message)
+        elif record.levelno >= logging.WARNING:
+            self._logger.warning(message)
+        else:
+            self._logger.info(message)
 
 
 
@@ -77,10 +103,20 @@ class JoinerNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tune_allocator()
         set_blas_threads(get_strategy(config.mode, config.map_type).blas_threads)
+        self._log_handler = _RosLogHandler(self)
+        core_logger = logging.getLogger("linear_slam_ros")
+        core_logger.addHandler(self._log_handler)
+        core_logger.setLevel(logging.INFO)
+        core_logger.propagate = False  # printed once, through ROS
 
+        # Large online-D&C merges run on this thread while arrivals go on (README, "Scale").
+        self.worker = MergeWorker() if config.background_merge_scalars > 0 else None
+        if self.worker is not None:
+            sys.setswitchinterval(SWITCH_INTERVAL)
         self.joiner = Joiner(
             config.mode, config.map_type, reorder_window=config.reorder_window, reorder_timeout=config.reorder_timeout,
-            reorder_max_bytes=config.reorder_max_bytes,
+            reorder_max_bytes=config.reorder_max_bytes, defer_above=config.background_merge_scalars or None,
+            worker=self.worker, gate_probability=config.gate_probability or None,
         )
         self.joiner.on_reject = self._on_reject
         self.n_received = 0
@@ -88,6 +124,14 @@ class JoinerNode(Node):
         self._published_version = 0  # nothing to publish before the first change
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
         self._next_publish = 0.0
+        # Freshness (README, "Scale"): arrival time of each submap, and how long after it the
+        # first pose and the first global_map including it were published (s).
+        self._arrived: dict[int, float] = {}
+        self._fresh_pose: list[float] = []
+        self._fresh_map: list[float] = []
+        self._pose_seq = 0  # newest submap seq whose pose was published
+        # per submap with timing_file: [arrival (monotonic s), join ms, pose freshness ms, map freshness ms]
+        self._timeline: dict[int, list[float]] | None = {} if config.timing_file else None
 
         self.store = StateStore(Path(config.state_dir)) if config.state_dir else None
         self._journal_records = 0  # journal records the joiner state includes
@@ -158,13 +202,14 @@ class JoinerNode(Node):
 
     def _receive(self, topic: str, raw: bytes) -> None:
         """Decode an inbound message, journal it (with ``state_dir``), then offer it to the joiner."""
+        arrived = time.monotonic()
         self.n_received += 1
         try:
             submap, seq = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
-        self._offer(submap, seq, journal=(topic, raw))
+        self._offer(submap, seq, journal=(topic, raw), arrived=arrived)
 
     def _replay(self, topic: str, raw: bytes) -> None:
         """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
@@ -176,8 +221,14 @@ class JoinerNode(Node):
             return
         self._offer(submap, seq, self._journal_records)
 
-    def _offer(self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None) -> None:
+    def _offer(
+        self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None,
+        arrived: float | None = None,
+    ) -> None:
         """Offer a submap to the joiner; with ``journal``, append its message to the journal first.
+
+        The newest pose is published at once when the submap is joined (``arrived``: its arrival
+        time, for the freshness figures).
 
         Both happen under the joining lock, so a snapshot always pairs a state with the number of
         journal records it includes. A message the joiner will skip (sequence number already
@@ -190,12 +241,23 @@ class JoinerNode(Node):
                 self._persist_seconds["journal"] += time.perf_counter() - t0
                 self._cpu_seconds["journal"] += time.thread_time() - c0
             c0 = time.thread_time()
+            if arrived is not None and not self.joiner.already_handled(seq):
+                self._arrived[seq] = arrived
+                if self._timeline is not None:
+                    self._timeline[seq] = [arrived, np.nan, np.nan, np.nan]
             joined = self.joiner.offer(submap, seq)
+            if self._timeline is not None and joined:
+                for s, seconds in zip(joined, self.joiner.join_seconds[-len(joined) :], strict=True):
+                    if s in self._timeline:
+                        self._timeline[s][1] = seconds * 1e3
             self._cpu_seconds["join"] += time.thread_time() - c0
             if record is not None:
                 self._journal_records = record + 1
             if joined:
                 self._version += 1
+                state = self.joiner.state
+        if joined and arrived is not None:  # live arrivals (not the journal's replay at start-up)
+            self._publish_pose(state, joined)
         for s in joined:
             self.get_logger().debug(
                 f"joined submap seq {s}: {self.joiner.state.n_joined} joined, last join "
@@ -219,6 +281,8 @@ class JoinerNode(Node):
             self.joiner.reset()
             self.n_received = 0
             self._version += 1
+            self._arrived.clear()
+            self._pose_seq = 0
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
@@ -338,11 +402,16 @@ class JoinerNode(Node):
             self._snapshot()
 
     def destroy_node(self) -> None:
-        """Snapshot and close the journal (clean shutdown), then destroy the node."""
+        """Snapshot and close the journal (clean shutdown), stop the merge thread, then destroy the node."""
         if self.store is not None:
             self._snapshot()
             self.store.close()
             self.store = None
+        if self.worker is not None:
+            self.worker.stop()
+        if self._timeline is not None:
+            self._write_timeline(Path(self.config.timing_file))
+        logging.getLogger("linear_slam_ros").removeHandler(self._log_handler)
         super().destroy_node()
 
     # ------------------------------------------------------------------ outputs
@@ -350,6 +419,66 @@ class JoinerNode(Node):
     def _stamp(self) -> Stamp:
         now = self.get_clock().now().to_msg()
         return Stamp(int(now.sec), int(now.nanosec))
+
+    def _publish_pose(self, state: JoinerState, joined: list[int]) -> None:
+        """Publish the newest pose of a state just joined, if its strategy has it cheaply."""
+        if state.first_pose_id is None:
+            return
+        current = state.strategy.current_pose(state.joined, state.first_pose_id)
+        if current is None:
+            return
+        end_pose = current[1]
+        dim = 2 if end_pose.shape[0] == 3 else 3
+        self.pub_pose.publish(pose_stamped_msg(dim, end_pose, self.config.map_frame, self._now_msg()))
+        now = time.monotonic()
+        for s in joined:
+            t = self._arrived.get(s)
+            if t is not None:
+                self._fresh_pose.append(now - t)
+                if self._timeline is not None and s in self._timeline:
+                    self._timeline[s][2] = (now - t) * 1e3
+        self._pose_seq = joined[-1]
+
+    def _now_msg(self) -> Any:
+        return self.get_clock().now().to_msg()
+
+    def _record_map_freshness(self, last_seq: int) -> None:
+        """Count the submaps up to ``last_seq`` as published in the global map now."""
+        now = time.monotonic()
+        with self._lock:
+            for s in [s for s in self._arrived if s <= last_seq]:
+                seconds = now - self._arrived.pop(s)
+                self._fresh_map.append(seconds)
+                if self._timeline is not None and s in self._timeline:
+                    self._timeline[s][3] = seconds * 1e3
+
+    def node_stats(self) -> dict[str, float]:
+        """Return the node's freshness (ms), background-merge and memory figures."""
+        out: dict[str, float] = {}
+        for what, samples in (("pose", self._fresh_pose), ("map", self._fresh_map)):
+            lat = latency(samples)
+            out[f"freshness_{what}_ms_p50"] = lat.p50_ms
+            out[f"freshness_{what}_ms_p99"] = lat.p99_ms
+            out[f"freshness_{what}_ms_max"] = lat.max_ms
+            out[f"n_fresh_{what}"] = float(len(samples))
+        if self.worker is not None:
+            out["background_merges"] = float(self.worker.n_done)
+            out["background_merge_seconds_total"] = self.worker.seconds
+        out["peak_rss_mb"] = peak_rss_mb()
+        return out
+
+    def _write_timeline(self, path: Path) -> None:
+        """Write the per-submap timing CSV (``timing_file``): seq, arrival s (from the first), join and freshness ms."""
+        rows = sorted(self._timeline.items()) if self._timeline else []
+        start = min((r[0] for _, r in rows), default=0.0)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "w") as fh:
+                fh.write("seq,arrival_s,join_ms,pose_freshness_ms,map_freshness_ms\n")
+                for seq, (arrived, join_ms, pose_ms, map_ms) in rows:
+                    fh.write(f"{seq},{arrived - start:.6f},{join_ms:.4f},{pose_ms:.4f},{map_ms:.4f}\n")
+        except OSError as exc:
+            self.get_logger().error(f"cannot write timing_file {path}: {exc}")
 
     def _on_publish_timer(self) -> None:
         now = time.monotonic()
@@ -359,13 +488,14 @@ class JoinerNode(Node):
             state, version, stats = self.joiner.state, self._version, self.joiner.stats()
         if version == self._published_version:
             return
+        stats.update(self.node_stats())
         try:
             self._publish(state, stats)
         except LinearSlamError as exc:  # pragma: no cover - outputs of a valid state
             self.get_logger().error(f"could not publish the global map: {exc}")
         self._published_version = version
-        # Outputs of a large map cost CPU the joining thread needs: keep publishing under
-        # PUBLISH_DUTY of the time, whatever publish_rate asks for.
+        # Outputs of a large map cost CPU the merges need: keep publishing under PUBLISH_DUTY of
+        # the time, whatever publish_rate asks for.
         self._next_publish = now + (time.monotonic() - now) / PUBLISH_DUTY
 
     def _encode(self, joined: Any, state: JoinerState, stats: dict[str, float]) -> Encoded:
@@ -383,11 +513,12 @@ class JoinerNode(Node):
             if joined is None:  # feature-only: no group defines a feature frame yet
                 return
             self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
+            self._record_map_freshness(state.last_seq or 0)
             views = map_views(joined, state.first_pose_id, config.map_frame, stamp, config.ellipse_max_state)
         if views.path is not None:
             self.pub_path.publish(views.path)
         self.pub_markers.publish(views.markers)
-        if views.pose is not None:
+        if views.pose is not None and (state.last_seq or 0) > self._pose_seq:  # not older than the arrivals' pose
             self.pub_pose.publish(views.pose)
 
     def _on_summary_timer(self) -> None:
@@ -402,9 +533,17 @@ class JoinerNode(Node):
         status.message = "joining" if state.n_joined else "waiting for submaps"
         if stats["n_rejected"]:
             status.level, status.message = DiagnosticStatus.WARN, f"{int(stats['n_rejected'])} submaps rejected"
+        stats.update(self.node_stats())
         status.values = [KeyValue(key=k, value=f"{v:g}") for k, v in stats.items()]
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))
         status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
+        status.values.append(KeyValue(key="n_gated", value=str(len(self.joiner.gated))))
+        if self.joiner.gated:
+            last = self.joiner.gated[-1]
+            status.values.append(KeyValue(
+                key="last_gated", value=f"seq {last.submap}: NIS {last.nis:.1f} > {last.threshold:.1f} ({last.dof} dof), "
+                f"variables {list(last.variables)}" + (" (whole submap)" if last.rejected else ""),
+            ))
         for what, seconds in self._persist_seconds.items():
             status.values.append(KeyValue(key=f"{what}_seconds_total", value=f"{seconds:g}"))
         for what, seconds in self._cpu_seconds.items():

@@ -11,10 +11,11 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import rclpy
+from rclpy._rclpy_pybind11 import RCLError  # what a refused publish raises (rclpy re-exports no name for it)
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from std_msgs.msg import Float64MultiArray
@@ -25,7 +26,10 @@ from linear_slam_ros.ros.qos import bag_topic_qos
 from linear_slam_ros.ros.spin import node_session, wait_for_subscribers
 
 
-def play(node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wait_s: float = 30.0) -> float:
+def play(
+    node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wait_s: float = 30.0,
+    on_start: Callable[[], None] | None = None,
+) -> float:
     """Publish bag records from ``node``; return the seconds spent publishing.
 
     Args:
@@ -33,12 +37,15 @@ def play(node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wai
         records: messages in time order.
         rate_factor: bag-time speed-up (2.0 plays twice as fast; 0 or less: no pauses).
         wait_s: how long to wait for subscribers, and for acknowledgements at the end.
+        on_start: called just before the first message is published (after discovery).
     """
     publishers: dict[str, Publisher] = {}
     for r in records:
         if r.topic not in publishers:
             publishers[r.topic] = node.create_publisher(Float64MultiArray, r.topic, bag_topic_qos(r.latched))
     wait_for_subscribers(node, publishers, wait_s)
+    if on_start is not None:
+        on_start()
     start_wall = time.monotonic()
     start_bag = records[0].time_ns if records else 0
     for r in records:
@@ -47,11 +54,31 @@ def play(node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wai
             pause = due - time.monotonic()
             if pause > 0:
                 time.sleep(pause)
-        publishers[r.topic].publish(r.raw)
+        _publish_when_room(publishers[r.topic], r.raw, wait_s)
     elapsed = time.monotonic() - start_wall
     for pub in publishers.values():
         pub.wait_for_all_acked(rclpy.duration.Duration(seconds=wait_s))
     return elapsed
+
+
+def _publish_when_room(publisher: Publisher, raw: bytes, wait_s: float) -> None:
+    """Publish, waiting while a reliable keep-all history is full (a subscriber behind a full-speed replay).
+
+    The DDS writer refuses a sample when its history holds as many unacknowledged samples as its
+    resource limits allow; nothing is lost by waiting for the subscriber to acknowledge some.
+
+    Raises:
+        RCLError: the history stayed full for ``wait_s`` seconds.
+    """
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            publisher.publish(raw)
+            return
+        except RCLError:  # "cannot publish data": the history is full
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.002)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -6,6 +6,8 @@
   takes up to a few seconds, and volatile messages published before it are lost).
 - :class:`LatestMessage`: keep the newest message of a latched topic and wait for one that
   satisfies a condition, while watching the process that should publish it.
+- :func:`wait_for_diagnostics`, :func:`diagnostic_values`: spin until a ``/diagnostics`` status
+  carries the wanted values; a status's numeric values.
 """
 
 from __future__ import annotations
@@ -127,3 +129,41 @@ class LatestMessage(Generic[T]):
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None) -> None:
         self.close()
+
+
+def wait_for_diagnostics(
+    node: Node, done: Callable[[dict[str, float]], bool], timeout_s: float, name_prefix: str = "joiner"
+) -> dict[str, float] | None:
+    """Spin until a ``/diagnostics`` status named ``name_prefix...`` has values satisfying ``done``.
+
+    Returns:
+        The status's numeric values (``{key: value}``), or ``None`` if none came within ``timeout_s``.
+    """
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    found: list[dict[str, float]] = []
+
+    def on_status(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name.lstrip("/").startswith(name_prefix):
+                values = diagnostic_values(status)
+                if done(values):
+                    found.append(values)
+
+    sub = node.create_subscription(DiagnosticArray, "/diagnostics", on_status, 10)
+    try:
+        spin_until(node, lambda: bool(found), timeout_s)
+    finally:
+        node.destroy_subscription(sub)
+    return found[0] if found else None
+
+
+def diagnostic_values(status: Any) -> dict[str, float]:
+    """Return the numeric values of a ``diagnostic_msgs/DiagnosticStatus`` (non-numeric ones left out)."""
+    values = {}
+    for kv in status.values:
+        try:
+            values[kv.key] = float(kv.value)
+        except ValueError:
+            continue
+    return values

@@ -78,3 +78,163 @@ def test_initial_state_of_another_method_exits_2(tmp_path, caplog):
     assert main(["join", archive, "--method", "sequential", "--out", str(tmp_path / "a"), "--save-state", str(state)]) == 0
     assert main(["join", archive, "--method", "online-dc", "--out", str(tmp_path / "b"), "--initial-state", str(state)]) == 2
     assert "the saved map was joined with mode='sequential'" in caplog.text
+
+
+# ------------------------------------------------------------------ formats, errors and help (issue 14)
+
+
+def _pose_only_dataset(tmp_path, dim=2):
+    import numpy as np
+
+    from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world
+    from linear_slam_ros.io.datasets import MapKind
+    from support import write_dataset
+
+    rng = np.random.default_rng(7)
+    kind = MapKind.PG2D if dim == 2 else MapKind.PG3D
+    write_dataset(exact_pose_graph_maps(make_world(dim, 20, 0, rng), rng), tmp_path / "pg", kind)
+    return tmp_path / "pg"
+
+
+def _tum_rows(path):
+    import numpy as np
+
+    return np.array([[float(v) for v in line.split(" ")] for line in path.read_text().splitlines() if not line.startswith("#")])
+
+
+@pytest.mark.parametrize("command", ["join", "refine"])
+def test_format_tum_and_g2o(command, tmp_path):
+    import numpy as np
+
+    from linear_slam_ros.pose_graph.g2o import read_g2o, read_g2o_file
+
+    out = tmp_path / "o"
+    assert main([command, str(_pose_only_dataset(tmp_path)), "--out", str(out), "--format", "reference", "tum", "g2o"]) == 0
+    poses = read_rows(out / "poses.txt")
+    tum = _tum_rows(out / "poses.tum")
+    assert tum.shape == (len(poses), 8) and tum[:, 0].tolist() == [float(k) for k in sorted(poses)]
+    np.testing.assert_allclose(np.linalg.norm(tum[:, 4:], axis=1), 1.0, atol=1e-15)
+    g2o = read_g2o_file(out / "graph.g2o")
+    estimates = g2o.poses()
+    assert sorted(estimates) == sorted(poses)
+    for k, x in poses.items():
+        np.testing.assert_array_equal(estimates[k], x)  # 2D: written and read back exactly
+    assert read_g2o(out / "graph.g2o").n_edges > len(poses) - 1
+    only_tum = tmp_path / "t"
+    assert main([command, str(_pose_only_dataset(tmp_path)), "--out", str(only_tum), "--format", "tum"]) == 0
+    assert sorted(p.name for p in only_tum.iterdir()) == ["poses.tum", "report.json"]
+
+
+def test_se3_g2o_file_is_joined(tmp_path):
+    import numpy as np
+
+    from linear_slam_ros.core.geometry import wrap_angle
+    from linear_slam_ros.io.datasets import read_dataset
+    from linear_slam_ros.pose_graph.chunks import graph_from_local_maps
+    from linear_slam_ros.pose_graph.g2o import write_g2o
+
+    dataset = read_dataset(_pose_only_dataset(tmp_path, dim=3))
+    write_g2o(tmp_path / "pg3.g2o", graph_from_local_maps(dataset.maps))
+    assert main(["join", str(tmp_path / "pg"), "--out", str(tmp_path / "a")]) == 0
+    assert main(["join", str(tmp_path / "pg3.g2o"), "--out", str(tmp_path / "b"), "--format", "reference", "tum"]) == 0
+    report_a = json.loads((tmp_path / "a" / "report.json").read_text())
+    report_b = json.loads((tmp_path / "b" / "report.json").read_text())
+    assert report_b["kind"] == "3DPG" and report_b["n_submaps"] == report_a["n_submaps"] == 20
+    assert report_b["chi2"] == pytest.approx(report_a["chi2"], abs=1e-9)
+    a, b = read_rows(tmp_path / "a" / "poses.txt"), read_rows(tmp_path / "b" / "poses.txt")
+    assert sorted(a) == sorted(b)
+    for k in a:  # angles near pi may come out on either side
+        np.testing.assert_allclose(np.r_[b[k][:3] - a[k][:3], wrap_angle(b[k][3:] - a[k][3:])], 0.0, atol=1e-9)
+    assert _tum_rows(tmp_path / "b" / "poses.tum").shape == (21, 8)
+    assert main(["join", str(tmp_path / "pg3.g2o"), "--kind", "2DPG", "--out", str(tmp_path / "c")]) == 2
+
+
+def test_lago_refine_writes_the_refined_poses(tmp_path):
+    import numpy as np
+
+    from linear_slam_ros.evaluation.nonlinear import gauss_newton
+    from linear_slam_ros.pose_graph.chunks import edge_maps
+    from linear_slam_ros.pose_graph.g2o import read_g2o, write_g2o
+    from linear_slam_ros.pose_graph.graph import PoseGraph
+    from linear_slam_ros.pose_graph.lago import lago
+
+    rng = np.random.default_rng(11)
+    pairs = [(k, k + 1) for k in range(12)] + [(0, 6), (3, 11), (12, 2)]
+    z = np.array([[1.0, 0.1, 0.5] for _ in pairs]) + rng.normal(scale=0.05, size=(len(pairs), 3))
+    write_g2o(tmp_path / "g.g2o", PoseGraph.from_edges([a for a, _ in pairs], [b for _, b in pairs], z, [np.eye(3)] * len(pairs)))
+    graph = read_g2o(tmp_path / "g.g2o")
+    expected = gauss_newton(lago(graph).map, edge_maps(graph)).map
+    out = tmp_path / "o"
+    assert main(["lago", str(tmp_path / "g.g2o"), "--refine", "--out", str(out), "--format", "reference", "tum", "g2o"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["poses_written"] == "nls" and report["nls_chi2"] < report["chi2"]
+    poses = read_rows(out / "poses.txt")
+    for i, k in enumerate(expected.ids.tolist()):
+        np.testing.assert_array_equal(poses[k], expected.x[expected.scalar_slice(i)])
+    assert _tum_rows(out / "poses.tum").shape == (13, 8)
+    assert sorted(read_g2o(out / "graph.g2o").pose_ids.tolist()) == list(range(13))
+    assert main(["lago", str(tmp_path / "g.g2o"), "--out", str(tmp_path / "l")]) == 0
+    assert json.loads((tmp_path / "l" / "report.json").read_text())["poses_written"] == "lago"
+    assert read_rows(tmp_path / "l" / "poses.txt")[5].tolist() != poses[5].tolist()
+
+
+def test_pose_formats_need_poses(tmp_path, caplog):
+    archive = str(dataset_archive("8240_data_50_local_maps"))
+    assert main(["join", archive, "--map-type", "feature-only", "--format", "tum", "--out", str(tmp_path / "a")]) == 2
+    assert "--format tum writes poses; feature-only maps hold none" in caplog.text
+    assert main(["join", archive, "--format", "g2o", "--out", str(tmp_path / "b")]) == 2
+    assert "--format g2o writes a pose graph; 8240_data_50_local_maps is a pose-feature dataset (2DPF)" in caplog.text
+
+
+def _run_cli(*args, cache):
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "LINEAR_SLAM_CACHE": str(cache)}
+    return subprocess.run([sys.executable, "-m", "linear_slam_ros", *args], capture_output=True, text=True, env=env, timeout=120,
+                          check=False)
+
+
+def _one_error_line(result):
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("ERROR linear_slam_ros: ")
+    return lines[0]
+
+
+def test_bad_input_is_one_stderr_line_and_exit_2(tmp_path):
+    """Truncated archive, corrupt archive, garbage line, missing files: one line naming the file, exit code 2."""
+    data = dataset_archive("Intel").read_bytes()
+    (tmp_path / "cut.tar.xz").write_bytes(data[: len(data) // 3])
+    corrupt = bytearray(data)
+    corrupt[5000:5100] = b"x" * 100
+    (tmp_path / "bad.tar.xz").write_bytes(bytes(corrupt))
+    folder = _pose_only_dataset(tmp_path)
+    lines = (folder / "localmap_3.txt").read_text().splitlines()
+    lines[6] = lines[6] + " #"
+    (folder / "localmap_3.txt").write_text("\n".join(lines) + "\n")
+    cache, out = tmp_path / "cache", str(tmp_path / "o")
+    line = _one_error_line(_run_cli("join", str(tmp_path / "cut.tar.xz"), "--out", out, cache=cache))
+    assert line.endswith("cut.tar.xz: the archive is truncated")
+    assert "bad.tar.xz: " in _one_error_line(_run_cli("refine", str(tmp_path / "bad.tar.xz"), "--out", out, cache=cache))
+    line = _one_error_line(_run_cli("join", str(folder), "--out", out, cache=cache))
+    assert line.endswith(f"{folder / 'localmap_3.txt'}:7: '#' is not a number")
+    line = _one_error_line(_run_cli("join", "missing", "--out", out, cache=cache))
+    assert "'missing' is neither a folder nor a .tar.xz archive" in line
+    line = _one_error_line(_run_cli("lago", str(tmp_path / "none.g2o"), "--out", out, cache=cache))
+    assert "none.g2o: [Errno 2] No such file or directory" in line
+    good = _pose_only_dataset(tmp_path / "good")
+    line = _one_error_line(_run_cli("join", str(good), "--initial-state", str(tmp_path / "no.npz"), "--out", out, cache=cache))
+    assert "no.npz" in line
+
+
+def test_help_shows_defaults(capsys):
+    cases = (("join", "(default: dc)"), ("lago", "(default: ['reference'])"), ("benchmark", "(default: out/benchmark)"))
+    for command, expected in cases:
+        with pytest.raises(SystemExit) as stop:
+            main([command, "--help"])
+        assert stop.value.code == 0
+        assert expected in capsys.readouterr().out

@@ -16,7 +16,7 @@ def _spd(n, rng):
     return (a @ a.T + sp.eye(n) * n * 0.01).tocsr()
 
 
-@pytest.mark.parametrize("backend", ["sksparse", "cholmod", "scipy"])
+@pytest.mark.parametrize("backend", ["libcholmod", "sksparse", "cholmod", "scipy"])
 def test_backends_agree(backend, rng):
     m = _spd(400, rng)
     b = rng.normal(size=400)
@@ -26,7 +26,7 @@ def test_backends_agree(backend, rng):
 
 
 def test_auto_prefers_system_cholmod_and_dispatches_dense(rng):
-    assert backend_name() == "sksparse"  # make installs scikit-sparse on Debian's SuiteSparse
+    assert backend_name() == "libcholmod"  # make installs Debian's SuiteSparse
     m = _spd(50, rng)
     b = rng.normal(size=50)
     np.testing.assert_allclose(solve_spd(m.toarray(), b), solve_spd(m, b), atol=1e-10)
@@ -36,5 +36,38 @@ def test_not_positive_definite_raises():
     bad = np.diag([1.0, -1.0, 2.0])
     with pytest.raises(SolverError, match="information matrix of size 3 is not positive definite"):
         solve_dense_spd(bad, np.ones(3))
-    with pytest.raises(SolverError, match="not positive definite"):
-        solve_sparse_spd(sp.csr_matrix(bad), np.ones(3), "sksparse")
+    for backend in ("libcholmod", "sksparse"):
+        with pytest.raises(SolverError, match="not positive definite"):
+            solve_sparse_spd(sp.csr_matrix(bad), np.ones(3), backend)
+
+
+def test_libcholmod_equals_scikit_sparse_bit_for_bit_and_lets_other_threads_run(rng):
+    """The same library and settings: the same numbers; and the interpreter lock is free while it factorises."""
+    import threading
+    import time
+
+    m = _spd(3000, rng)
+    b = rng.normal(size=(3000, 2))
+    np.testing.assert_array_equal(solve_sparse_spd(m, b, "libcholmod"), solve_sparse_spd(m, b, "sksparse"))
+    np.testing.assert_array_equal(solve_sparse_spd(m, b[:, 0], "libcholmod"), solve_sparse_spd(m, b[:, 0], "sksparse"))
+    ticks = []
+    done = threading.Event()
+
+    def count() -> None:
+        while not done.is_set():
+            ticks.append(time.perf_counter())
+            time.sleep(0.0005)
+
+    k = 24  # a 3D grid Laplacian: its Cholesky factor fills in, a factorisation of ~0.1 s
+    line = sp.diags([-np.ones(k - 1), 2.1 * np.ones(k), -np.ones(k - 1)], [-1, 0, 1])
+    eye = sp.identity(k)
+    grid = sp.csr_matrix(sp.kron(sp.kron(line, eye), eye) + sp.kron(sp.kron(eye, line), eye) + sp.kron(sp.kron(eye, eye), line))
+    counter = threading.Thread(target=count)
+    counter.start()
+    t0 = time.perf_counter()
+    solve_sparse_spd(grid, np.ones(k**3), "libcholmod")
+    seconds = time.perf_counter() - t0
+    done.set()
+    counter.join()
+    during = [t for t in ticks if t0 <= t <= t0 + seconds]
+    assert seconds > 0.02 and len(during) >= seconds / 0.0005 / 10  # the other thread ran all along

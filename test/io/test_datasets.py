@@ -142,3 +142,51 @@ def test_poses_and_features_files(tmp_path, rng):
     with pytest.raises(InvalidMapError, match="poses must be written in the frame of pose 2"):
         write_poses(tmp_path / "p.txt", m, origin_id=2)
     assert format_local_map(m, MapKind.PF2D).startswith("0\n")
+
+
+def _tiny_archive(tmp_path, rng):
+    world = make_world(2, 6, 5, rng)
+    write_dataset(exact_local_maps(world, rng, 2), tmp_path / "tiny", MapKind.PF2D)
+    archive = tmp_path / "tiny.tar.xz"
+    with tarfile.open(archive, "w:xz") as tar:
+        tar.add(tmp_path / "tiny", arcname="tiny")
+    return archive
+
+
+def test_truncated_archive_names_the_file_and_leaves_nothing(tmp_path, rng):
+    data = _tiny_archive(tmp_path, rng).read_bytes()
+    truncated = tmp_path / "cut.tar.xz"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(DatasetError, match=r"^cannot unpack .*cut\.tar\.xz: the archive is truncated$"):
+        read_dataset(truncated, cache_dir=tmp_path / "cache")
+    assert list((tmp_path / "cache").iterdir()) == []  # no half-unpacked folder, no scratch folder
+
+
+def test_corrupt_archive_names_the_file(tmp_path, rng):
+    data = bytearray(_tiny_archive(tmp_path, rng).read_bytes())
+    data[200:260] = b"x" * 60
+    corrupt = tmp_path / "bad.tar.xz"
+    corrupt.write_bytes(bytes(data))
+    with pytest.raises(DatasetError, match=r"^cannot unpack .*bad\.tar\.xz: \S"):
+        read_dataset(corrupt, cache_dir=tmp_path / "cache")
+
+
+def test_garbage_line_names_the_file_and_line(tmp_path):
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "localmap_1.txt").write_text(PF_TEXT)
+    lines = PF_TEXT.splitlines()
+    lines[4] = "-1 0.5O"  # a letter O for a zero
+    (tmp_path / "ds" / "localmap_2.txt").write_text("\n".join(lines))
+    with pytest.raises(DatasetError, match=r"ds/localmap_2\.txt:5: '0\.5O' is not a number$"):
+        read_dataset(tmp_path / "ds")
+    with pytest.raises(DatasetError, match=r"^localmap_7:2: 'n' is not a number$"):
+        parse_local_map_text("0\nn\n", "localmap_7")
+    with pytest.raises(DatasetError, match=r"^x/localmap_7\.txt:1: 'a' is not a number$"):
+        parse_local_map_text("0\ta", "localmap_7", source="x/localmap_7.txt")  # the tab-separated path
+
+
+def test_format_errors_name_the_file_path(tmp_path):
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "localmap_1.txt").write_text("0 2 1 0 1 0 1 0")
+    with pytest.raises(DatasetError, match=r"ds/localmap_1\.txt: n = 2 needs 10 numbers"):
+        read_dataset(tmp_path / "ds")

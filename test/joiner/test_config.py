@@ -22,7 +22,7 @@ def test_defaults_and_conversions():
 def test_declarations_follow_the_config_fields():
     decls = {d.name: d for d in parameter_declarations()}
     assert list(decls) == [f for f in JoinerConfig.__dataclass_fields__]
-    assert decls["mode"].default == "sequential" and decls["mode"].spec.read_only
+    assert decls["mode"].default == "online-dc" and decls["mode"].spec.read_only
     assert decls["mode"].choices == ("sequential", "dc", "online-dc")
     assert decls["publish_rate"].spec.bounds == (0.05, 100.0) and not decls["publish_rate"].spec.read_only
 

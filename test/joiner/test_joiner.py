@@ -9,7 +9,10 @@ from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner
+from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import JoinMethod
+from linear_slam_ros.joining.background import MergeWorker
+from linear_slam_ros.joining.divide_conquer import Deferred
 from support import global_map_of
 
 
@@ -83,6 +86,32 @@ def test_save_and_restore_carry_on_exactly(maps):
     with pytest.raises(ConfigError, match="the saved map was joined with mode='online-dc', map_type='as-is'; "
                                           "this joiner runs mode='sequential'"):
         Joiner(JoinMethod.SEQUENTIAL).restore(saved)
+
+
+def test_background_merges_give_the_same_map_and_survive_save_restore_and_reset(maps, tmp_path):
+    worker = MergeWorker()
+    try:
+        j = Joiner(JoinMethod.ONLINE_DC, defer_above=0, worker=worker)  # every merge in the background
+        for seq, m in enumerate(maps[:6], start=1):
+            assert j.offer(m, seq) == [seq]
+        assert j.state.joined.defer_above == 0
+        write_snapshot(tmp_path / "state.npz", j.save())  # deferred merges are written as their results
+        restored = read_snapshot(tmp_path / "state.npz")
+        assert not any(isinstance(e, Deferred) for e in restored.state.joined.stack)
+        other = Joiner(JoinMethod.ONLINE_DC, defer_above=0, worker=worker)
+        other.restore(restored)
+        for seq, m in enumerate(maps[6:], start=7):
+            assert j.offer(m, seq) == [seq] and other.offer(m, seq) == [seq]
+        offline = run_join(maps, JoinMethod.ONLINE_DC).result
+        for joiner in (j, other):
+            np.testing.assert_array_equal(global_map_of(joiner.state).x, offline.x)
+        pose_id, pose = j.state.strategy.current_pose(j.state.joined, j.state.first_pose_id)
+        assert pose_id == offline.end_id and np.all(np.isfinite(pose))
+        j.reset()
+        assert j.state.n_joined == 0 and j.state.joined.defer_above == 0 and worker.wait_idle(30.0)
+    finally:
+        worker.stop()
+    assert not worker.alive
 
 
 class FakeClock:

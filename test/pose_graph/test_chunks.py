@@ -80,8 +80,7 @@ def test_edge_maps_and_graph_from_local_maps_are_inverse(dim, rng, circle_graph)
     ]
     if dim == 3:
         with pytest.raises(GraphError, match="map 'edge_0' is not a 2D pose-only map"):
-            graph_from_local_maps(edges)
-        return
+            graph_from_local_maps([*edge_maps(PoseGraph.from_edges([0], [1], [[1.0, 0, 0]], [np.eye(3)])), *edges])
     back = graph_from_local_maps(edges)
     for name in ("from_ids", "to_ids", "measurements", "information", "pose_ids"):
         assert getattr(back, name).tobytes() == getattr(graph, name).tobytes(), name

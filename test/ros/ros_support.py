@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 
 from linear_slam_ros.ros.process import loopback_env, stop_process  # imports no rclpy
+from support import committed_bag, dataset_source
 
 REPO = Path(__file__).resolve().parents[2]
 INSTALL_SETUP = REPO / "install" / "setup.bash"
-DATASETS = REPO.parent / "shared" / "datasets"
 
 # DDS stays on loopback, in a domain of this test run (never the default 0, nor the domain of
 # `make run`): the tests never meet another run's nodes.
@@ -31,12 +31,16 @@ from msg_adapters.ros import parts  # noqa: E402
 
 
 def dataset_bag(name: str) -> Path:
-    """Return ``bags/<name>``, made from the benchmark dataset (10 Hz stamps) when it is not there yet."""
+    """Return the bag of benchmark dataset ``name`` (10 Hz stamps): the committed one (bags/README.md), else
+    ``bags/<name>``, made from the dataset when it is not there yet."""
     from linear_slam_ros.ros.bag_from_dataset import make_bag
 
+    committed = committed_bag(name)
+    if committed is not None:
+        return committed
     bag = REPO / "bags" / name
     if not (bag / "metadata.yaml").exists():
-        make_bag(DATASETS / f"{name}.tar.xz", bag, rate_hz=10.0)
+        make_bag(dataset_source(name), bag, rate_hz=10.0)
     return bag
 
 

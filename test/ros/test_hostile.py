@@ -69,7 +69,8 @@ from linear_slam_ros.ros.process import stop_process
 from linear_slam_ros.ros.qos import bag_topic_qos, latched_qos
 from linear_slam_ros.ros.spin import wait_for_subscribers
 from msg_adapters import decode_chunk, decode_map, encode_map
-from ros_support import DATASETS, REPO, JoinerProcess, dataset_bag
+from ros_support import REPO, JoinerProcess, dataset_bag
+from support import dataset_source
 
 pytestmark = pytest.mark.ros
 
@@ -83,6 +84,8 @@ under a quarter of its time: with 30 Intel chunks joined a publish takes up to ~
 after a rejection can hold the next global_map back for 3 s."""
 NODE_PARAMS: dict[str, object] = {"publish_rate": 50.0, "summary_period": 0.5, "ellipse_max_state": 0}
 LOCAL, GRAPH = "local_map", "pose_graph"
+DEFAULT_MODE = JoinerConfig().mode
+"""What a joiner started without ``mode`` runs (NODE_PARAMS has none)."""
 FAR = 1_000_000
 """Pose ids and frames no stream uses."""
 
@@ -722,7 +725,7 @@ def _make_stream(name: str, read_benchmark: Callable[[str], Any]) -> Stream:
         return Stream(name, STREAM_MODE[name], LOCAL, maps, [segs_of(r.raw) for r in records])
     bag = REPO / "bags" / "Intel_chunks5"
     if not (bag / "metadata.yaml").exists():
-        make_bag(DATASETS / "Intel.tar.xz", bag, as_pose_graph=True, maps_per_chunk=5)
+        make_bag(dataset_source("Intel"), bag, as_pose_graph=True, maps_per_chunk=5)
     records = list(read_messages(bag))[:INTEL_N]
     maps = [chunk_to_local_map(decode_chunk(*_parts(r.raw)).graph) for r in records]
     return Stream(name, STREAM_MODE[name], GRAPH, maps, [segs_of(r.raw) for r in records])
@@ -1227,7 +1230,7 @@ def test_first_message_numbered_1e9_on_a_fresh_node(node, start_joiner):
     assert final is not None, f"the stream 1..{len(maps)} was not joined: last map {ses.latest}; output:\n" + \
         "\n".join(ses.lines[-20:])
     assert final.n_submaps == len(maps) and final.seq == len(maps)
-    problem = _map_diff(final, run_join(maps, "sequential").result)
+    problem = _map_diff(final, run_join(maps, DEFAULT_MODE).result)
     assert problem is None, problem
     assert code == 0
 
@@ -1256,7 +1259,7 @@ def test_undecodable_message_then_fewer_than_reorder_window_submaps(node, start_
     assert final is not None, f"not all joined {timeout + 5.0:g} s after the last submap: last map " \
         f"{ses.latest.n_submaps if ses.latest else None} submaps; warnings {warnings}"
     assert took <= timeout + 3.0
-    problem = _map_diff(final, run_join(maps, "sequential").result)
+    problem = _map_diff(final, run_join(maps, DEFAULT_MODE).result)
     assert problem is None, problem
     assert any(re.search(CDR, ln) for ln in warnings), warnings
     assert any(re.search(r"(?i)\b4\b.*(never arrived|missing|skipp|gap|given up)", ln) for ln in warnings), warnings
@@ -1391,6 +1394,6 @@ def test_reset_then_a_late_subscriber_gets_an_empty_map(node, start_joiner):
 def test_after_reset_the_stream_starts_again_at_1(node, start_joiner):
     f = flood_run(node, start_joiner)
     assert f["again"] is not None, "after ~/reset, the stream 1..N sent again was not joined"
-    problem = _map_diff(f["again"], run_join(f["maps"], "sequential").result)
+    problem = _map_diff(f["again"], run_join(f["maps"], DEFAULT_MODE).result)
     assert problem is None, problem
     assert f["alive"] and f["exit_code"] == 0

@@ -5,7 +5,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
+
+from std_srvs.srv import Trigger
 
 from linear_slam_ros.ros.spin import spin_until
 from ros_support import REPO, sourced
@@ -28,6 +31,11 @@ def test_ament_index_finds_the_package_and_its_executable(node, start_joiner):
     joiner = start_joiner()
     appeared = spin_until(node, lambda: ("joiner", f"/{joiner.namespace}") in node.get_node_names_and_namespaces(), 30.0, 0.1)
     assert appeared, f"node joiner did not appear: {node.get_node_names_and_namespaces()}"
+    # the node is discoverable from the start of its constructor: stop it once the constructor is done
+    # (its services are made near the end, the "ready" line right after)
+    client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/save_map")
+    assert client.wait_for_service(timeout_sec=30.0)
+    time.sleep(0.5)
     code, output = joiner.stop()
     assert code == 0, output  # Ctrl-C is a clean exit
-    assert "joiner ready: mode=sequential" in output
+    assert "joiner ready: mode=online-dc" in output  # the default mode

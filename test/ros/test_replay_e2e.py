@@ -24,8 +24,9 @@ from linear_slam_ros.ros.bagio import BagRecord, read_messages
 from linear_slam_ros.ros.player import play
 from msg_adapters import decode_map, encode_map
 from msg_adapters.ros import to_msg
-from ros_support import DATASETS, REPO, wait_for_global_map
+from ros_support import REPO, wait_for_global_map
 from ros_support import dataset_bag as _bag
+from support import dataset_source
 
 CASES = [
     pytest.param("VicPark_200_local_maps", "sequential", id="VicPark200-sequential"),
@@ -149,7 +150,7 @@ def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner, tmp_path
     duplicate = good[1]
     stream = good[:2] + [garbage, duplicate, nan_map] + good[2:] + [wrong_frame]
     saved = tmp_path / "saved_map"
-    joiner = start_joiner(publish_rate=20.0, reorder_window=5, save_directory=str(saved))
+    joiner = start_joiner(mode="sequential", publish_rate=20.0, reorder_window=5, save_directory=str(saved))
     _publish_all(node, joiner.topic("local_map"), stream)
     final, _ = wait_for_global_map(
         node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps) and m.stats["n_rejected"] >= 2, 60.0, joiner
@@ -197,7 +198,7 @@ def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark
     maps = list(read_benchmark(name).maps)
     bag = REPO / "bags" / f"{name}_chunks{MAPS_PER_CHUNK}"
     if not (bag / "metadata.yaml").exists():
-        make_bag(DATASETS / f"{name}.tar.xz", bag, as_pose_graph=True, maps_per_chunk=MAPS_PER_CHUNK)
+        make_bag(dataset_source(name), bag, as_pose_graph=True, maps_per_chunk=MAPS_PER_CHUNK)
     records = list(read_messages(bag))
     joiner = start_joiner(mode="online-dc", publish_rate=10.0)
     t0 = time.monotonic()

@@ -3,17 +3,26 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import ClassVar
+
+import numpy as np
+import numpy.typing as npt
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.joiner.strategy import BatchStrategy, FoldStrategy, JoinMethod, MapType, Progress
+from linear_slam_ros.joiner.strategy import BatchStrategy, FoldStrategy, JoinMethod, MapType, PoseEstimate, Progress
+from linear_slam_ros.joining.chain import PoseChain
 from linear_slam_ros.joining.divide_conquer import (
+    Deferred,
     OnlineDCState,
     join_divide_and_conquer,
+    leaf_maps,
     online_dc_result,
     online_dc_step,
+    pending_joins,
 )
+from linear_slam_ros.joining.gate import Marginal, PrefixCache, online_dc_marginal
 
 
 class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
@@ -41,6 +50,30 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
     def express(self, result: LocalMap, pose_id: int) -> LocalMap:
         """Return the map in the frame of pose ``pose_id``."""
         return change_frame(result, pose_id)
+
+    def defer(self, state: OnlineDCState, above_scalars: int | None) -> OnlineDCState:
+        """Defer the merges of more than ``above_scalars`` state scalars (see :class:`OnlineDCState`)."""
+        return replace(state, defer_above=above_scalars)
+
+    def pending(self, state: OnlineDCState) -> list[Deferred]:
+        """Return the stack's merges not computed yet, inputs first."""
+        return pending_joins(state.stack)
+
+    def __init__(self) -> None:
+        self._chain = PoseChain()  # a cache only: the result depends on the state alone
+        self._prefixes = PrefixCache()  # a cache only, for marginal()
+
+    def current_pose(self, state: OnlineDCState, frame_pose_id: int) -> PoseEstimate | None:
+        """Chain the newest end pose along the stack's parts, computing no merge (only the changed parts)."""
+        return self._chain.end_pose(leaf_maps(state.stack), frame_pose_id)
+
+    def marginal(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> Marginal | None:
+        """Return the merged stack's marginal of ``keys``: cached prefix merge, reduced, joined with the top.
+
+        See :func:`~linear_slam_ros.joining.gate.online_dc_marginal`; deferred joins are not forced
+        (their inputs are folded instead).
+        """
+        return online_dc_marginal(state, keys, self._prefixes)
 
 
 class BatchDC(BatchStrategy[LocalMap]):

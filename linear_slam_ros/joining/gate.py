@@ -1,0 +1,468 @@
+"""χ² gating of a submap against the global map (issue 11, part 3): the normalised innovation squared.
+
+Before a submap is joined, what it says about the variables the map already holds (its *common*
+variables) is compared with the map's estimate. In one frame, with ``r = z_S,c - x_M,c`` (angles
+wrapped) and the two marginal covariances of the common variables, the normalised innovation
+squared is::
+
+    NIS = r^T (P_S,cc + P_M,cc)^-1 r,      dof = number of common scalars,
+
+which is exactly the increase of the linear least-squares objective that joining would cause
+(local maps are independent). The gate passes when ``NIS <= chi2.ppf(probability, dof)``.
+
+Frames: the map's marginal is requested for the common variables plus the submap's frame pose.
+When the map holds that pose, the small marginal is moved into the submap's frame (closed form,
+exact Jacobians: :func:`~linear_slam_ros.core.frames.change_frame`); when instead the submap holds
+the map's frame pose, the submap is moved; with neither, nothing can be compared (the join itself
+raises ``FrameError``).
+
+A failing submap is not dropped whole when a few variables explain the failure: the variable with
+the largest *conditional* NIS (its innovation given the others', ``(W r)_v^T W_vv^-1 (W r)_v`` with
+``W = C^-1``: exactly how much the total NIS drops without it) is split off, and so on while the
+rest fails, up to half of the common variables. Split-off variables are marginalised out of the
+submap (:func:`marginalise_out`; exact, and for pose-only maps whose information is block diagonal
+per edge it drops those edges), and the rest, including the pose chain, is joined. A submap that
+still fails after that is gated whole: all its common variables are split off, so nothing it says
+about the map is fused, and only its new variables join (the chain goes on; dropping the submap
+would leave every later submap without the pose it is expressed in).
+"""
+
+from __future__ import annotations
+
+import collections
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.stats
+
+from linear_slam_ros.core.errors import SolverError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.geometry import wrap_angle
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask, pose_key, to_dense, var_keys, var_sizes
+from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd
+from linear_slam_ros.joining.divide_conquer import Deferred, Entry, OnlineDCState, leaf_maps
+from linear_slam_ros.joining.pairwise import join_at_seam
+from linear_slam_ros.joining.sequential import CovarianceMap, _symmetrize_lower
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+MAX_SPLIT_FRACTION = 0.5
+"""At most this fraction of a submap's common variables (at least one) is split off; beyond, it is gated whole."""
+
+
+@dataclass(frozen=True)
+class Marginal:
+    """The marginal distribution of some variables of a map, in the map's frame.
+
+    Attributes:
+        dim: 2 or 3.
+        frame_id: pose whose frame the estimate is in (not a variable).
+        ids: ``(m,)`` variable ids; ``kinds``: ``(m,)`` :data:`POSE` / :data:`FEATURE`.
+        x: ``(n,)`` estimate (metres, radians) in the frame of ``frame_id``.
+        cov: ``(n, n)`` marginal covariance (m², rad²).
+    """
+
+    dim: int
+    frame_id: int
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    x: FloatArray
+    cov: FloatArray
+
+    @property
+    def keys(self) -> IntArray:
+        """Variable keys (``2 id + kind``)."""
+        return var_keys(self.ids, self.kinds)
+
+    def to_local_map(self) -> LocalMap:
+        """Return the marginal as a map (information ``cov^-1``).
+
+        Raises:
+            SolverError: the covariance is not positive definite.
+        """
+        info = _spd_inverse(self.cov, "marginal covariance of the global map")
+        return LocalMap.trusted(self.dim, self.frame_id, None, self.ids, self.kinds, self.x, info, "global marginal")
+
+    @classmethod
+    def of_map(cls, local_map: LocalMap, keys: Sequence[int] | IntArray) -> Marginal | None:
+        """Return the marginal of the variables of ``local_map`` among ``keys`` (``None``: none of them).
+
+        One sparse (or dense) Cholesky of the map's information and one solve per kept scalar.
+
+        Raises:
+            SolverError: the information is not positive definite.
+        """
+        lookup = local_map.key_set
+        var_idx = np.array(sorted({lookup[k] for k in np.asarray(keys).tolist() if k in lookup}), dtype=np.int64)
+        if var_idx.size == 0:
+            return None
+        sc = local_map.scalar_index(var_idx)
+        n = local_map.state_dim
+        if n <= DENSE_MAX or not sp.issparse(local_map.info):
+            cov = _spd_inverse(to_dense(local_map.info), f"information of {local_map.name!r}")[np.ix_(sc, sc)]
+        else:
+            rhs = np.zeros((n, sc.size))
+            rhs[sc, np.arange(sc.size)] = 1.0
+            cov = solve_sparse_spd(local_map.info, rhs)[sc]
+        return cls(local_map.dim, local_map.frame_id, local_map.ids[var_idx], local_map.kinds[var_idx],
+                   local_map.x[sc], 0.5 * (cov + cov.T))
+
+    @classmethod
+    def of_covariance_map(cls, cov_map: CovarianceMap, keys: Sequence[int] | IntArray) -> Marginal | None:
+        """Return the marginal of a covariance-form map (exact sequential joining): ``S_cc = Q_c S~_cc Q_c^T``, O(c²)."""
+        lookup = cov_map.key_set
+        var_idx = np.array(sorted({lookup[k] for k in np.asarray(keys).tolist() if k in lookup}), dtype=np.int64)
+        if var_idx.size == 0:
+            return None
+        sc = cov_map.scalar_index(var_idx)  # ascending: the block of the stored lower triangle stays lower
+        s_tilde = _symmetrize_lower(cov_map.cov_tilde[np.ix_(sc, sc)])
+        q = cov_map.q_block(var_idx)
+        cov = q @ s_tilde @ q.T
+        return cls(cov_map.dim, cov_map.frame_id, cov_map.ids[var_idx], cov_map.kinds[var_idx], cov_map.x[sc],
+                   0.5 * (cov + cov.T))
+
+
+def _spd_inverse(matrix: FloatArray, what: str) -> FloatArray:
+    try:
+        factor = scipy.linalg.cho_factor(matrix, lower=True)
+    except np.linalg.LinAlgError:
+        raise SolverError(f"{what} (size {matrix.shape[0]}) is not positive definite") from None
+    inv = scipy.linalg.cho_solve(factor, np.eye(matrix.shape[0]))
+    return np.asarray(0.5 * (inv + inv.T), dtype=np.float64)
+
+
+MarginalFn = Callable[[IntArray], "Marginal | None"]
+"""Given variable keys, the global map's marginal of those it holds (``None``: none, or it cannot tell)."""
+
+
+# --------------------------------------------------------------------------- online divide and conquer
+
+
+def _entry_map(entry: Entry) -> LocalMap:
+    """The map an entry stands for, never forcing a deferred join: its leaves are folded instead."""
+    if isinstance(entry, Deferred):
+        if entry.done:
+            return entry.value()
+        leaves = leaf_maps([entry])
+        out = leaves[0]
+        for leaf in leaves[1:]:
+            out = join_at_seam(out, leaf)
+        return out
+    return entry
+
+
+def _entry_token(entry: Entry) -> int:
+    """Identity of what an entry stands for (a computed deferred join counts as its map)."""
+    return id(entry.value()) if isinstance(entry, Deferred) and entry.done else id(entry)
+
+
+@dataclass
+class PrefixCache:
+    """Cache of the online D&C stack's merged prefixes, for :func:`online_dc_marginal` (a cache only).
+
+    A push changes only the top of the binary-counter stack, so the merge of every entry but the top
+    was either merged at an earlier step or is one pairwise join away from one that was. Prefixes
+    are keyed by the identity of their entries and kept while they are prefixes of the newest stack
+    (at most as many maps as stack entries). Results never depend on what is cached.
+    """
+
+    _merged: collections.OrderedDict[tuple[int, ...], tuple[tuple[Entry, ...], LocalMap]] = field(
+        default_factory=collections.OrderedDict
+    )
+
+    def merged(self, entries: tuple[Entry, ...]) -> LocalMap:
+        """Return the entries joined oldest first at their seams (in the frame of the first's seam), caching prefixes."""
+        tokens = tuple(_entry_token(e) for e in entries)
+        j = len(entries)
+        while j > 0 and tokens[:j] not in self._merged:
+            j -= 1
+        current = self._merged[tokens[:j]][1] if j else _entry_map(entries[0])
+        if not j:
+            j = 1
+            self._merged[tokens[:1]] = (entries[:1], current)
+        for i in range(j, len(entries)):
+            current = join_at_seam(current, _entry_map(entries[i]))
+            self._merged[tokens[: i + 1]] = (entries[: i + 1], current)
+        for key in [k for k in self._merged if k != tokens[: len(k)]]:
+            del self._merged[key]
+        return current
+
+    def clear(self) -> None:
+        """Forget every cached prefix."""
+        self._merged.clear()
+
+
+def online_dc_marginal(state: OnlineDCState, keys: IntArray, cache: PrefixCache | None = None) -> Marginal | None:
+    """Return the marginal of ``keys`` in the merged online D&C map, without merging the whole stack anew.
+
+    The stack is split into its prefix (every entry but the top, merged oldest first and cached) and
+    its top. The prefix is reduced to its marginal over the variables that matter (the requested
+    ones, those it shares with the top, and its end pose, the seam) by one sparse Cholesky; that
+    small map is joined with the top at the seam. Marginalising before the join is exact for the
+    linear LS (the dropped variables are in the prefix only, and every change of frame of a variable
+    depends on that variable and the frame pose alone), so the result is the marginal of the merged
+    map, to the order of the merge (the same linear LS, folded oldest first).
+
+    Cost per call: at most one pairwise join of the cached prefix with the previous top, one sparse
+    factorisation of the prefix, and joins of small maps.
+
+    Raises:
+        SolverError: an information matrix is not positive definite.
+    """
+    if not state.stack:
+        return None
+    cache = cache if cache is not None else PrefixCache()
+    top = _entry_map(state.stack[-1])
+    if len(state.stack) == 1:
+        return Marginal.of_map(top, keys)
+    prefix = cache.merged(state.stack[:-1])
+    wanted = set(np.asarray(keys).tolist()) | set(top.key_set)
+    if prefix.end_id is not None:
+        wanted.add(pose_key(prefix.end_id))
+    reduced = Marginal.of_map(prefix, np.fromiter(wanted, np.int64, len(wanted)))
+    if reduced is None:
+        return Marginal.of_map(top, keys)
+    small = reduced.to_local_map().replace(end_id=prefix.end_id, name="global prefix marginal")
+    return Marginal.of_map(join_at_seam(small, top), keys)
+
+
+# --------------------------------------------------------------------------- the test
+
+
+@dataclass(frozen=True)
+class VariableNis:
+    """One common variable's part of a gate decision.
+
+    Attributes:
+        var_id: the variable's id; ``kind``: :data:`POSE` or :data:`FEATURE`.
+        nis: its conditional NIS (given the other common variables'): how much the total drops without it.
+        dof: its scalars (3/6 for a pose, 2/3 for a feature).
+    """
+
+    var_id: int
+    kind: int
+    nis: float
+    dof: int
+
+    def describe(self) -> str:
+        """``pose 12 (NIS 1722.1, 3 dof)``."""
+        return f"{'pose' if self.kind == POSE else 'feature'} {self.var_id} (NIS {self.nis:.1f}, {self.dof} dof)"
+
+
+@dataclass(frozen=True)
+class GateResult:
+    """A gate decision for one submap.
+
+    Attributes:
+        probability: the gate's χ² probability.
+        nis: NIS of all common variables (0 without any).
+        dof: their scalars; ``threshold``: ``chi2.ppf(probability, dof)`` (``inf`` with dof 0).
+        worst: the common variables by decreasing conditional NIS (at most 5).
+        split: variables split off (marginalised out of the submap), in order of removal.
+        nis_after, dof_after: NIS and dof of the common variables that remain.
+        rejected: the submap is gated whole: more than half of its common variables fail, so all of
+            them are split off (what it says about the map is dropped; its new variables, the pose
+            chain, are still joined, anchored at its frame pose).
+        submap: what is joined: the submap, or the submap without ``split`` (``None``: nothing is left).
+    """
+
+    probability: float
+    nis: float
+    dof: int
+    threshold: float
+    worst: tuple[VariableNis, ...] = ()
+    split: tuple[VariableNis, ...] = ()
+    nis_after: float = 0.0
+    dof_after: int = 0
+    rejected: bool = False
+    submap: LocalMap | None = None
+
+    @property
+    def passed(self) -> bool:
+        """Whether the submap passed as it came (nothing split off, not rejected)."""
+        return not self.rejected and not self.split
+
+    def message(self, label: str) -> str:
+        """One line naming the NIS, the threshold, the dof, the worst variables and what was done."""
+        worst = ", ".join(v.describe() for v in self.worst[:3])
+        head = (
+            f"{label}: NIS {self.nis:.2f} > χ² threshold {self.threshold:.2f} for {self.dof} dof "
+            f"(probability {self.probability:g}); worst: {worst}"
+        )
+        if self.rejected:
+            return head + (f"; gated whole (more than {MAX_SPLIT_FRACTION:.0%} of its common variables fail): "
+                           "every common variable split off, only its new variables joined")
+        split = ", ".join(f"{'pose' if v.kind == POSE else 'feature'} {v.var_id}" for v in self.split)
+        return head + f"; split off {split} (NIS {self.nis_after:.2f} for {self.dof_after} dof after), rest joined"
+
+
+def chi2_threshold(probability: float, dof: int) -> float:
+    """``chi2.ppf(probability, dof)`` (``inf`` for ``dof`` 0)."""
+    return float(scipy.stats.chi2.ppf(probability, dof)) if dof > 0 else float("inf")
+
+
+def _nis(r: FloatArray, cov: FloatArray) -> tuple[float, FloatArray]:
+    """Return ``r^T C^-1 r`` and ``W = C^-1``."""
+    w = _spd_inverse(cov, "innovation covariance")
+    return float(r @ w @ r), w
+
+
+def gate_submap(marginal: MarginalFn, submap: LocalMap, probability: float) -> GateResult:
+    """Test a submap against the global map's marginal (module docstring): pass, split, or gate it whole.
+
+    Args:
+        marginal: the global map's marginal of given keys (:class:`Marginal`, in the map's frame).
+        submap: the arriving submap (its own frame).
+        probability: χ² probability of the gate, in (0, 1).
+
+    Raises:
+        SolverError: a covariance is not positive definite.
+    """
+    request = np.concatenate([submap.keys, [pose_key(submap.frame_id)]])
+    m = marginal(request)
+    nothing = GateResult(probability, 0.0, 0, float("inf"), submap=submap)
+    if m is None:
+        return nothing
+    s = submap
+    if m.frame_id != s.frame_id:
+        held = {int(k) for k in m.keys}
+        if pose_key(s.frame_id) in held:
+            m = _reframe(m, s.frame_id)
+        elif s.has_pose(m.frame_id):
+            s = change_frame(s, m.frame_id)
+        else:
+            return nothing
+    m_lookup = {int(k): i for i, k in enumerate(m.keys.tolist())}
+    s_keys = s.keys.tolist()
+    common = [(i, m_lookup[k]) for i, k in enumerate(s_keys) if k in m_lookup]
+    if not common:
+        return nothing
+    s_idx = np.array([c[0] for c in common], dtype=np.int64)
+    m_idx = np.array([c[1] for c in common], dtype=np.int64)
+    sizes = s.sizes[s_idx]
+    sc_s = s.scalar_index(s_idx)
+    m_offsets = np.concatenate([[0], np.cumsum(var_sizes(m.dim, m.kinds))])
+    sc_m = np.concatenate([np.arange(m_offsets[j], m_offsets[j + 1]) for j in m_idx])
+    r = s.x[sc_s] - m.x[sc_m]
+    ang = angle_mask(s.dim, s.kinds[s_idx])
+    r[ang] = wrap_angle(r[ang])
+    p_s = _submap_covariance(s, sc_s)
+    c_full = p_s + m.cov[np.ix_(sc_m, sc_m)]
+    block_start = np.concatenate([[0], np.cumsum(sizes)])
+    ids = s.ids[s_idx]
+    kinds = s.kinds[s_idx]
+    original = set(submap.keys.tolist())
+    removable = np.array([int(k) in original for k in s.keys[s_idx].tolist()])
+    if s.end_id is not None:
+        removable &= ~((kinds == POSE) & (ids == s.end_id))
+
+    def blocks_scalars(active: list[int]) -> IntArray:
+        return np.concatenate([np.arange(block_start[b], block_start[b + 1]) for b in active])
+
+    def conditional(active: list[int]) -> tuple[float, list[VariableNis]]:
+        sc = blocks_scalars(active)
+        total, w = _nis(r[sc], c_full[np.ix_(sc, sc)])
+        wr = w @ r[sc]
+        out: list[VariableNis] = []
+        pos = 0
+        for b in active:
+            k = int(sizes[b])
+            part = slice(pos, pos + k)
+            value = float(wr[part] @ np.linalg.solve(w[part, part], wr[part]))
+            out.append(VariableNis(int(ids[b]), int(kinds[b]), value, k))
+            pos += k
+        return total, out
+
+    active = list(range(len(common)))
+    total, per_var = conditional(active)
+    dof = int(sizes.sum())
+    threshold = chi2_threshold(probability, dof)
+    worst = tuple(sorted(per_var, key=lambda v: -v.nis)[:5])
+    if total <= threshold:
+        return GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap)
+    limit = max(1, int(MAX_SPLIT_FRACTION * len(common)))
+    split: list[VariableNis] = []
+    current, current_vars = total, per_var
+    while current > chi2_threshold(probability, int(sizes[active].sum())) and len(split) < limit:
+        candidates = [(float(scipy.stats.chi2.logsf(v.nis, v.dof)), b, v)
+                      for b, v in zip(active, current_vars, strict=True) if removable[b]]
+        if not candidates:
+            break
+        _, b_out, v_out = min(candidates, key=lambda t: t[0])
+        split.append(v_out)
+        active.remove(b_out)
+        if not active:
+            current, current_vars = 0.0, []
+            break
+        current, current_vars = conditional(active)
+    dof_after = int(sizes[active].sum()) if active else 0
+    rejected = current > chi2_threshold(probability, dof_after)
+    if rejected:  # everything it says about the map is dropped; its new variables still extend the chain
+        split = [v for b, v in enumerate(per_var) if removable[b]]
+        current, dof_after = 0.0, int(sizes[~removable].sum())
+    drop = [submap.key_set[int(2 * v.var_id + v.kind)] for v in split]
+    trimmed = marginalise_out(submap, drop) if len(drop) < submap.n_vars else None
+    return GateResult(probability, total, dof, threshold, worst, tuple(split), current, dof_after, rejected, trimmed)
+
+
+def _reframe(m: Marginal, frame_id: int) -> Marginal:
+    """Move a marginal (which holds pose ``frame_id``) into the frame of that pose."""
+    moved = change_frame(m.to_local_map(), frame_id)
+    cov = _spd_inverse(to_dense(moved.info), "moved marginal information")
+    return Marginal(m.dim, frame_id, moved.ids, moved.kinds, moved.x, cov)
+
+
+def _submap_covariance(submap: LocalMap, scalars: IntArray) -> FloatArray:
+    """Marginal covariance of some scalars of a submap (dense: submaps are small)."""
+    n = submap.state_dim
+    if n <= DENSE_MAX or not sp.issparse(submap.info):
+        return _spd_inverse(to_dense(submap.info), f"information of submap {submap.name!r}")[np.ix_(scalars, scalars)]
+    rhs = np.zeros((n, scalars.size))
+    rhs[scalars, np.arange(scalars.size)] = 1.0
+    cov = solve_sparse_spd(submap.info, rhs)[scalars]
+    return np.asarray(0.5 * (cov + cov.T), dtype=np.float64)
+
+
+def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
+    """Return ``submap`` without the variables ``var_indices``, marginalised out (Schur complement).
+
+    The remaining estimate is unchanged; the information becomes ``I_kk - I_kr I_rr^-1 I_rk``. With
+    block-diagonal information (pose-only maps made of edges from the frame pose), this drops
+    exactly the removed variables' edges.
+
+    Raises:
+        SolverError: the removed variables' information is not positive definite.
+    """
+    drop = np.zeros(submap.n_vars, dtype=bool)
+    drop[list(var_indices)] = True
+    keep_vars = np.flatnonzero(~drop)
+    sc_r = submap.scalar_index(np.flatnonzero(drop))
+    sc_k = submap.scalar_index(keep_vars)
+    info = to_dense(submap.info)
+    i_kk = info[np.ix_(sc_k, sc_k)]
+    i_kr = info[np.ix_(sc_k, sc_r)]
+    if np.any(i_kr):
+        try:
+            factor = scipy.linalg.cho_factor(info[np.ix_(sc_r, sc_r)], lower=True)
+        except np.linalg.LinAlgError:
+            raise SolverError(f"submap {submap.name!r}: information of the gated variables is not positive definite") from None
+        i_kk = i_kk - i_kr @ scipy.linalg.cho_solve(factor, i_kr.T)
+    i_kk = 0.5 * (i_kk + i_kk.T)
+    new_info = sp.csr_matrix(i_kk) if sp.issparse(submap.info) else i_kk
+    end_id = submap.end_id
+    ids = submap.ids[keep_vars]
+    kinds = submap.kinds[keep_vars]
+    if end_id is not None and end_id != submap.frame_id and not np.any((ids == end_id) & (kinds == POSE)):
+        end_id = None
+    return LocalMap.trusted(submap.dim, submap.frame_id, end_id, ids, kinds, submap.x[sc_k], new_info, submap.name)
+
+
+__all__ = [
+    "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "GateResult", "Marginal", "MarginalFn", "PrefixCache", "VariableNis",
+    "chi2_threshold", "gate_submap", "marginalise_out", "online_dc_marginal",
+]

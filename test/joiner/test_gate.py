@@ -1,0 +1,157 @@
+"""The χ² gate: known-answer NIS, consistent submaps pass, corrupted measurements are split off, config, CLI."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from linear_slam_ros.cli.main import main
+from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
+from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.joiner.joiner import Joiner, gate_step
+from linear_slam_ros.joiner.strategy import JoinMethod
+from linear_slam_ros.joining.divide_conquer import online_dc_result
+from linear_slam_ros.joining.gate import Marginal, gate_submap, marginalise_out
+from support import CACHE, dataset_archive, global_map_of
+
+
+@pytest.fixture
+def maps():
+    world = make_world(2, 24, 20, np.random.default_rng(11))
+    return noisy_local_maps(world, np.random.default_rng(12), steps_per_map=3)
+
+
+def _feature_map(x: list[float], info: float, frame: int = 1) -> LocalMap:
+    return LocalMap(2, frame, None, np.array([7]), np.array([FEATURE]), np.array(x), info * np.eye(2))
+
+
+def test_known_answer_nis_on_an_exact_linear_case():
+    marginal = Marginal(2, 1, np.array([7]), np.array([FEATURE], dtype=np.int8), np.array([1.0, 2.0]), 0.04 * np.eye(2))
+    submap = _feature_map([1.3, 1.6], 100.0)  # r = (0.3, -0.4), P_S = 0.01 I: NIS = 0.25 / 0.05 = 5
+    result = gate_submap(lambda keys: marginal, submap, 0.99)
+    assert result.nis == pytest.approx(5.0) and result.dof == 2
+    assert result.threshold == pytest.approx(scipy.stats.chi2.ppf(0.99, 2))
+    assert result.passed and result.submap is submap
+    failed = gate_submap(lambda keys: marginal, _feature_map([3.0, 2.0], 100.0), 0.99)  # NIS 4 / 0.05 = 80
+    assert failed.nis == pytest.approx(80.0) and not failed.passed
+    assert [(v.var_id, v.kind) for v in failed.split] == [(7, FEATURE)] and failed.submap is None
+
+
+def test_marginalising_out_drops_a_block_diagonal_edge_exactly():
+    ids, kinds = np.array([2, 3]), np.array([POSE, POSE])
+    info = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    m = LocalMap(2, 1, 3, ids, kinds, np.arange(6.0), info)
+    out = marginalise_out(m, [0])
+    assert out.ids.tolist() == [3] and out.x.tolist() == [3.0, 4.0, 5.0]
+    np.testing.assert_array_equal(out.info, np.diag([4.0, 5.0, 6.0]))
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC])
+def test_consistent_submaps_pass_and_the_map_is_unchanged(mode, maps):
+    gated, plain = Joiner(mode, gate_probability=0.999999), Joiner(mode)
+    for seq, m in enumerate(maps, start=1):
+        assert gated.offer(m, seq) == [seq]
+        plain.offer(m, seq)
+    assert gated.gated == [] and gated.n_rejected == 0
+    np.testing.assert_array_equal(global_map_of(gated.state).x, global_map_of(plain.state).x)
+
+
+def test_online_dc_marginal_equals_the_merged_maps(maps):
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:7], start=1):
+        j.offer(m, seq)
+    merged = online_dc_result(j.state.joined)
+    keys = merged.keys[:6]
+    fast = j.state.strategy.marginal(j.state.joined, keys)
+    assert fast is not None
+    exact = Marginal.of_map(change_frame(merged, fast.frame_id), keys)  # the same variables, in the same frame
+    assert exact is not None
+    order = [fast.keys.tolist().index(k) for k in exact.keys.tolist()]
+    sizes = [3 if k == POSE else 2 for k in fast.kinds]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    sc = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in order])
+    # the same linear LS folded oldest first instead of newest first: equal up to linearisation points (mm)
+    np.testing.assert_allclose(fast.x[sc], exact.x, atol=5e-3)
+    np.testing.assert_allclose(fast.cov[np.ix_(sc, sc)], exact.cov, rtol=0.05, atol=2e-4)
+
+
+def _with_feature_moved(maps, shift=5.0):
+    """The first submap (after the first) holding a feature already in the map, with that feature moved."""
+    seen: set[int] = set()
+    for k, m in enumerate(maps):
+        common = [i for i, key in enumerate(m.keys.tolist()) if key in seen and m.kinds[i] == FEATURE]
+        if k and common:
+            i = common[0]
+            x = m.x.copy()
+            x[m.scalar_slice(i)] += shift
+            return k, i, m.replace(x=x)
+        seen.update(m.keys.tolist())
+    raise AssertionError("no submap re-observes a feature")
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC])
+def test_a_corrupted_feature_is_split_off_and_the_rest_joined(mode, maps):
+    k, i, bad = _with_feature_moved(maps)
+    messages: list[tuple[str, str]] = []
+    j = Joiner(mode, gate_probability=0.999999, on_reject=lambda r, msg: messages.append((r, msg)))
+    ref = Joiner(mode)
+    stream = [*maps[:k], bad, *maps[k + 1:]]
+    clean = [*maps[:k], marginalise_out(maps[k], [i]), *maps[k + 1:]]
+    for seq, (m, c) in enumerate(zip(stream, clean, strict=True), start=1):
+        assert j.offer(m, seq) == [seq]
+        ref.offer(c, seq)
+    feature = int(maps[k].ids[i])
+    assert [(g.submap, g.variables) for g in j.gated] == [(k + 1, (feature,))]
+    assert j.rejected == {"gated": 1}
+    reason, msg = messages[0]
+    assert reason == "gated"
+    assert re.search(rf"NIS [\d.]+ > χ² threshold [\d.]+ for \d+ dof .*worst: feature {feature} ", msg), msg
+    np.testing.assert_allclose(global_map_of(j.state).x, global_map_of(ref.state).x, atol=1e-9)
+
+
+def test_a_submap_left_with_nothing_leaves_the_map_unchanged(maps):
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=0.999999)
+    for seq, m in enumerate(maps[:4], start=1):
+        j.offer(m, seq)
+    known = j.state.strategy.result(j.state.joined)
+    f = int(np.flatnonzero(known.kinds == FEATURE)[0])
+    fid, frame = int(known.ids[f]), int(known.frame_id)
+    x = known.x[known.scalar_slice(f)] + 4.0
+    lone = LocalMap(2, frame, frame, np.array([fid]), np.array([FEATURE]), x, 1e4 * np.eye(2))
+    before = j.state
+    assert gate_step(before, lone, 0.999999).submap is None
+    assert j.offer(lone, 5) == []
+    assert j.state.joined is before.joined and j.state.n_joined == before.n_joined
+    assert j.rejected == {"gated": 1} and j.gated[0].rejected is False and j.gated[0].variables == (fid,)
+    assert j.expected == 6  # its number is used: the stream goes on
+    assert j.offer(maps[4], 6) == [6]
+
+
+def test_config_errors_name_the_value():
+    with pytest.raises(ConfigError, match=r"gate_probability=1\.5"):
+        Joiner(JoinMethod.ONLINE_DC, gate_probability=1.5)
+    with pytest.raises(ConfigError, match=r"gate_probability=2\.0 is outside its range"):
+        JoinerConfig.from_mapping({"gate_probability": 2.0})
+    with pytest.raises(ConfigError, match="gate_probability='high' must be of type float"):
+        JoinerConfig.from_mapping({"gate_probability": "high"})
+    assert JoinerConfig().gate_probability == 0.0
+
+
+def test_cli_report_lists_the_gate_decisions(tmp_path, monkeypatch):
+    monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
+    archive = str(dataset_archive("8240_data_50_local_maps"))
+    out = tmp_path / "gated"
+    assert main(["join", archive, "--method", "online-dc", "--gate-probability", "0.999999", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["gate_probability"] == 0.999999
+    assert report["n_gated"] == len(report["gated"])
+    for g in report["gated"]:
+        assert set(g) >= {"submap", "variables", "nis", "dof"}
+    assert main(["join", archive, "--method", "dc", "--gate-probability", "0.99", "--out", str(tmp_path / "dc")]) == 2

@@ -1,0 +1,186 @@
+"""Deferred merges of online divide and conquer and the background worker that computes them."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
+from linear_slam_ros.joining import divide_conquer
+from linear_slam_ros.joining.background import MergeWorker
+from linear_slam_ros.joining.chain import chain_end_pose
+from linear_slam_ros.joining.divide_conquer import (
+    Deferred,
+    OnlineDCState,
+    leaf_maps,
+    online_dc_result,
+    online_dc_step,
+    pending_joins,
+)
+
+
+def _assert_same_map(a: LocalMap, b: LocalMap) -> None:
+    """Bit for bit: the same variables, estimate and information."""
+    assert (a.frame_id, a.end_id) == (b.frame_id, b.end_id)
+    np.testing.assert_array_equal(a.ids, b.ids)
+    np.testing.assert_array_equal(a.kinds, b.kinds)
+    np.testing.assert_array_equal(a.x, b.x)
+    info_a = a.info.toarray() if sp.issparse(a.info) else a.info
+    info_b = b.info.toarray() if sp.issparse(b.info) else b.info
+    np.testing.assert_array_equal(info_a, info_b)
+
+
+def _run(maps: list[LocalMap], defer_above: int | None, worker: MergeWorker | None = None) -> OnlineDCState:
+    state = OnlineDCState(defer_above=defer_above)
+    for m in maps:
+        state = online_dc_step(state, m)
+        if worker is not None:
+            worker.submit(pending_joins(state.stack))
+    return state
+
+
+@pytest.fixture
+def maps(rng: np.random.Generator) -> list[LocalMap]:
+    return noisy_local_maps(make_world(2, 80, 60, rng, loops=2.0), rng, steps_per_map=2)
+
+
+@pytest.fixture
+def worker():
+    w = MergeWorker()
+    yield w
+    w.stop()
+    assert not w.alive
+
+
+def test_deferred_merges_give_the_synchronous_map_bit_for_bit(maps, worker):
+    sync = _run(maps, None)
+    assert not any(isinstance(e, Deferred) for e in sync.stack)
+    for defer_above in (0, 40):
+        lazy = _run(maps, defer_above)  # nobody computes ahead: the result computes every deferred merge
+        assert any(isinstance(e, Deferred) and not e.done for e in lazy.stack)
+        _assert_same_map(online_dc_result(lazy), online_dc_result(sync))
+    ahead = _run(maps, 0, worker)
+    assert worker.wait_idle(60.0) and worker.n_done > 0
+    assert pending_joins(ahead.stack) == []
+    assert ahead.counts == sync.counts and ahead.n_joined == sync.n_joined == len(maps)
+    _assert_same_map(online_dc_result(ahead), online_dc_result(sync))
+
+
+def test_pending_joins_list_inputs_before_results(maps):
+    state = _run(maps[:8], 0)  # 8 submaps, every merge deferred: 1+1, 1+1, 2+2, ..., 4+4
+    order = pending_joins(state.stack)
+    assert len(order) == 7 and order[-1] is state.stack[0]
+    position = {id(d): i for i, d in enumerate(order)}
+    for d in order:
+        for parent_input in d.inputs or ():
+            if isinstance(parent_input, Deferred):
+                assert position[id(parent_input)] < position[id(d)]
+
+
+def test_a_merge_finishes_while_arrivals_go_on(maps, monkeypatch, worker):
+    """The worker holds a large merge; arrivals keep being joined meanwhile, then the merge lands."""
+    release, started = threading.Event(), threading.Event()
+    real_join = divide_conquer.join_at_seam
+
+    def slow_in_worker(a, b, name="global"):
+        if threading.current_thread().name == "linear_slam_merge":
+            started.set()
+            assert release.wait(30.0)
+        return real_join(a, b, name)
+
+    monkeypatch.setattr(divide_conquer, "join_at_seam", slow_in_worker)
+    halves = [_run(maps[i : i + 4], None).stack[0].state_dim for i in (0, 4)]
+    quarters = [_run(maps[i : i + 2], None).stack[0].state_dim for i in range(0, 14, 2)]
+    big = sum(halves) - 1  # two 4-submap halves merge above this; smaller merges do not
+    assert max(a + b for a, b in zip(quarters[::2], quarters[1::2], strict=False)) <= big
+    state = OnlineDCState(defer_above=big)
+    for m in maps[:8]:
+        state = online_dc_step(state, m)
+        worker.submit(pending_joins(state.stack))
+    assert started.wait(30.0)
+    merging = state.stack[0]
+    assert isinstance(merging, Deferred) and not merging.done and state.counts == (8,)
+    for m in maps[8:14]:  # arrivals while the merge of the first 8 is held in the worker
+        state = online_dc_step(state, m)
+    assert not merging.done and state.counts == (8, 4, 2)
+    assert not any(isinstance(e, Deferred) for e in state.stack[1:])  # the small levels joined on arrival
+    release.set()
+    assert worker.wait_idle(30.0) and merging.done
+    state = online_dc_step(state, maps[14])
+    assert not isinstance(state.stack[0], Deferred)  # the computed merge replaced its description
+    monkeypatch.setattr(divide_conquer, "join_at_seam", real_join)
+    _assert_same_map(online_dc_result(state), online_dc_result(_run(maps[:15], None)))
+
+
+def test_stop_during_a_merge_leaves_no_thread(maps, monkeypatch):
+    release, started = threading.Event(), threading.Event()
+    real_join = divide_conquer.join_at_seam
+
+    def held(a, b, name="global"):
+        started.set()
+        assert release.wait(30.0)
+        return real_join(a, b, name)
+
+    worker = MergeWorker()
+    monkeypatch.setattr(divide_conquer, "join_at_seam", held)
+    state = _run(maps[:16], 0, worker)
+    assert started.wait(30.0)
+    stopper = threading.Thread(target=worker.stop)
+    stopper.start()
+    release.set()  # the merge under way finishes; the queued ones are dropped
+    stopper.join(30.0)
+    assert not stopper.is_alive() and not worker.alive
+    assert worker.n_done <= 1 and pending_joins(state.stack)  # the rest was left for whoever needs it
+    monkeypatch.setattr(divide_conquer, "join_at_seam", real_join)
+    _assert_same_map(online_dc_result(state), online_dc_result(_run(maps[:16], None)))
+
+
+def test_clear_drops_queued_merges(maps, monkeypatch):
+    release = threading.Event()
+    real_join = divide_conquer.join_at_seam
+    monkeypatch.setattr(divide_conquer, "join_at_seam", lambda a, b, name="global": (release.wait(30.0), real_join(a, b))[1])
+    worker = MergeWorker()
+    try:
+        _run(maps[:16], 0, worker)
+        worker.clear()
+        release.set()
+        assert worker.wait_idle(30.0)
+        assert worker.n_done <= 1  # at most the one under way when cleared
+    finally:
+        worker.stop()
+
+
+def test_a_failing_deferred_merge_raises_to_whoever_asks(maps):
+    state = _run(maps[:2], 0)
+    merge = state.stack[0]
+    assert isinstance(merge, Deferred)
+    bad = maps[1].replace(frame_id=999_999, ids=maps[1].ids + 1_000_000)  # shares no pose with maps[0]
+    broken = Deferred(maps[0], bad, 2)
+    worker = MergeWorker()
+    try:
+        worker.submit([broken])
+        assert worker.wait_idle(30.0) and not broken.done
+    finally:
+        worker.stop()
+    with pytest.raises(FrameError, match="does not hold pose"):
+        broken.value()
+
+
+def test_chained_pose_is_the_end_pose_of_the_merged_map_for_exact_maps(rng):
+    """Noise-free maps agree, so chaining the parts gives the merged map's end pose exactly."""
+    world = make_world(2, 40, 0, rng)
+    maps = exact_pose_graph_maps(world, rng)
+    state = _run(maps, 0)
+    parts = leaf_maps(state.stack)
+    assert len(parts) == len(maps)  # nothing computed: every submap is a part
+    end_id, pose = chain_end_pose(parts, maps[0].frame_id)
+    merged = online_dc_result(state)
+    assert end_id == merged.end_id
+    np.testing.assert_allclose(pose, world.poses[end_id], atol=1e-9)
+    assert chain_end_pose([], 0) is None
+    assert chain_end_pose([maps[3]], maps[0].frame_id) is None  # does not hold the frame pose

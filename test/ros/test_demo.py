@@ -1,0 +1,50 @@
+"""The main job's report: the node's default mode, freshness, throughput and memory, next to the join figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.ros.bench_node import _checks, to_markdown
+from support import REPO
+
+FRESHNESS = [f"freshness_{w}_ms_{q}" for w in ("pose", "map") for q in ("p50", "p99", "max")]
+
+
+def test_demo_reports_freshness_throughput_and_memory_in_the_default_mode(tmp_path):
+    """A 24-submap synthetic stream through the installed joiner with no --mode: every new report key is filled in."""
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "linear_slam_ros.ros.demo", "--dataset", "synthetic:features2d-24@3",
+           "--bag", str(tmp_path / "bag"), "--out", str(out)]
+    done = subprocess.run(cmd, cwd=REPO, env=dict(os.environ), capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    report = json.loads((out / "report.json").read_text())
+    assert report["mode"] == JoinerConfig().mode.value == "online-dc"
+    assert report["n_submaps_joined"] == report["n_submaps_sent"] == 24
+    for key in FRESHNESS:
+        assert isinstance(report[key], float) and report[key] >= 0.0, key
+    assert report["freshness_pose_ms_p50"] <= report["freshness_pose_ms_max"]
+    assert report["freshness_pose_ms_max"] <= report["freshness_map_ms_max"]  # the pose goes out first
+    assert report["submaps_per_second"] > 0 and report["joiner_peak_rss_mb"] > 50.0
+    assert report["joiner_exit_code"] == 0
+
+
+def test_benchmark_checks_name_every_missed_target():
+    entry = {
+        "dataset": "city", "mode": "online-dc", "n_submaps_sent": 20000, "n_submaps_joined": 20000, "pose_only": True,
+        "per_submap_ms_p50": 0.3, "per_submap_ms_p99": 12.0, "per_submap_ms_max": 80.0,
+        "freshness_pose_ms_p50": 5.0, "freshness_pose_ms_p99": 20.0, "freshness_pose_ms_max": 60.0,
+        "freshness_map_ms_p50": 900.0, "freshness_map_ms_p99": 2500.0, "freshness_map_ms_max": 3000.0,
+        "submaps_per_second": 450.0, "joiner_peak_rss_mb": 400.0, "rss_bound_mb": 500.0, "map_difference": 0.0,
+        "chi2": 1.0, "offline_chi2": 1.0,
+    }
+    checks = _checks(entry)
+    assert [k for k, ok in checks.items() if ok is False] == ["join_p99", "map_fresh_p99", "throughput"]
+    assert checks["rss"] and checks["map_equal"] and checks["join_max"]
+    table = to_markdown([{**entry, "checks": checks}])
+    assert "Targets missed: city: join_p99, city: map_fresh_p99, city: throughput" in table
+    small = _checks({**entry, "n_submaps_sent": 500, "n_submaps_joined": 500})
+    assert small["map_fresh_p99"] is None and small["throughput"] is None  # targets of the 10,000/20,000 scale only

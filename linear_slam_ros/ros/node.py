@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import Path as PathMsg
@@ -55,6 +56,8 @@ PUBLISH_DUTY = 0.5
 """Largest fraction of wall time spent computing outputs. Their heavy parts (CHOLMOD, sparse
 products) leave the interpreter lock to the arrivals, so this bounds the second core's share
 taken from the background merges."""
+PRUNE_EVERY = 1024
+"""Offers between two prunings of the per-sequence-number records (a scan of each: amortised)."""
 SWITCH_INTERVAL = 0.0005
 """s, the interpreter's thread switch interval: an arrival waits at most this long for the
 background merge thread to hand over the interpreter lock (Python's default is 5 ms)."""
@@ -120,6 +123,7 @@ class JoinerNode(Node):
         )
         self.joiner.on_reject = self._on_reject
         self.n_received = 0
+        self.n_offered = 0  # submaps offered to the joiner (decoded), for the records' pruning
         self._version = 0  # bumped on every state change (join, rejection, reset, load); the publisher compares it
         self._published_version = 0  # nothing to publish before the first change
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
@@ -130,6 +134,9 @@ class JoinerNode(Node):
         self._fresh_pose: list[float] = []
         self._fresh_map: list[float] = []
         self._pose_seq = 0  # newest submap seq whose pose was published
+        self._data_stamps: dict[int, Stamp] = {}  # message stamps of submaps not joined yet
+        self._output_stamp: Stamp | None = None  # the newest joined submap's: the outputs' stamp
+        self._summary_counts: tuple[float, ...] | None = None  # what the last summary line said
         # per submap with timing_file: [arrival (monotonic s), join ms, pose freshness ms, map freshness ms]
         self._timeline: dict[int, list[float]] | None = {} if config.timing_file else None
 
@@ -205,30 +212,31 @@ class JoinerNode(Node):
         arrived = time.monotonic()
         self.n_received += 1
         try:
-            submap, seq = _decode(topic, raw, self.config.limits)
+            submap, seq, stamp = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
-        self._offer(submap, seq, journal=(topic, raw), arrived=arrived)
+        self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp)
 
     def _replay(self, topic: str, raw: bytes) -> None:
         """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
         try:
-            submap, seq = _decode(topic, raw, self.config.limits)
+            submap, seq, stamp = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
             self._journal_records += 1
             return
-        self._offer(submap, seq, self._journal_records)
+        self._offer(submap, seq, self._journal_records, stamp=stamp)
 
     def _offer(
         self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None,
-        arrived: float | None = None,
+        arrived: float | None = None, stamp: Stamp | None = None,
     ) -> None:
         """Offer a submap to the joiner; with ``journal``, append its message to the journal first.
 
         The newest pose is published at once when the submap is joined (``arrived``: its arrival
-        time, for the freshness figures).
+        time, for the freshness figures). Outputs carry the message ``stamp`` of the newest joined
+        submap (the node's clock when that stamp is zero).
 
         Both happen under the joining lock, so a snapshot always pairs a state with the number of
         journal records it includes. A message the joiner will skip (sequence number already
@@ -241,6 +249,8 @@ class JoinerNode(Node):
                 self._persist_seconds["journal"] += time.perf_counter() - t0
                 self._cpu_seconds["journal"] += time.thread_time() - c0
             c0 = time.thread_time()
+            if stamp is not None and not self.joiner.already_handled(seq):
+                self._data_stamps[seq] = stamp
             if arrived is not None and not self.joiner.already_handled(seq):
                 self._arrived[seq] = arrived
                 if self._timeline is not None:
@@ -256,6 +266,13 @@ class JoinerNode(Node):
             if joined:
                 self._version += 1
                 state = self.joiner.state
+                stamps = [self._data_stamps.pop(s, None) for s in joined]
+                if stamps[-1] is not None:
+                    self._output_stamp = stamps[-1]
+            self.n_offered += 1
+            if self.n_offered % PRUNE_EVERY == 0:
+                self._prune(self._data_stamps, keep_joined=False)
+                self._prune(self._arrived, keep_joined=True)  # joined ones wait for their global_map
         if joined and arrived is not None:  # live arrivals (not the journal's replay at start-up)
             self._publish_pose(state, joined)
         for s in joined:
@@ -263,6 +280,20 @@ class JoinerNode(Node):
                 f"joined submap seq {s}: {self.joiner.state.n_joined} joined, last join "
                 f"{self.joiner.join_seconds[-1] * 1e3:.2f} ms"
             )
+
+    def _prune(self, per_seq: dict[int, Any], keep_joined: bool) -> None:
+        """Keep a per-sequence-number record bounded against hostile streams (called under the lock).
+
+        Numbers leave the records when their outputs go out; one the reorder buffer dropped (far
+        ahead) would stay for ever, and so would a rejected one in ``_data_stamps``. Numbers the
+        buffer could never hold are forgotten, and with ``keep_joined`` False those below the next
+        expected number too.
+        """
+        window = self.joiner.reorder_window
+        expected = self.joiner.expected
+        stale = [s for s in per_seq if s > expected + 2 * window or (not keep_joined and s < expected)]
+        for seq in stale:
+            del per_seq[seq]
 
     def _on_reject(self, _reason: str, message: str) -> None:
         self.get_logger().warning(message)
@@ -283,6 +314,8 @@ class JoinerNode(Node):
             self._version += 1
             self._arrived.clear()
             self._pose_seq = 0
+            self._data_stamps.clear()
+            self._output_stamp = None
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
@@ -417,6 +450,10 @@ class JoinerNode(Node):
     # ------------------------------------------------------------------ outputs
 
     def _stamp(self) -> Stamp:
+        """The outputs' stamp: the newest joined submap's message stamp, or the node's clock when it is zero."""
+        data = self._output_stamp
+        if data is not None and (data.sec, data.nanosec) != (0, 0):
+            return data
         now = self.get_clock().now().to_msg()
         return Stamp(int(now.sec), int(now.nanosec))
 
@@ -429,7 +466,7 @@ class JoinerNode(Node):
             return
         end_pose = current[1]
         dim = 2 if end_pose.shape[0] == 3 else 3
-        self.pub_pose.publish(pose_stamped_msg(dim, end_pose, self.config.map_frame, self._now_msg()))
+        self.pub_pose.publish(pose_stamped_msg(dim, end_pose, self.config.map_frame, self._stamp_msg()))
         now = time.monotonic()
         for s in joined:
             t = self._arrived.get(s)
@@ -439,8 +476,10 @@ class JoinerNode(Node):
                     self._timeline[s][2] = (now - t) * 1e3
         self._pose_seq = joined[-1]
 
-    def _now_msg(self) -> Any:
-        return self.get_clock().now().to_msg()
+    def _stamp_msg(self) -> Any:
+        """:meth:`_stamp` as a ``builtin_interfaces/Time``."""
+        stamp = self._stamp()
+        return Time(sec=stamp.sec, nanosec=stamp.nanosec)
 
     def _record_map_freshness(self, last_seq: int) -> None:
         """Count the submaps up to ``last_seq`` as published in the global map now."""
@@ -503,7 +542,7 @@ class JoinerNode(Node):
 
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
         config = self.config
-        stamp = self.get_clock().now().to_msg()
+        stamp = self._stamp_msg()
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
             self.pub_global.publish(to_msg(empty))
@@ -525,10 +564,13 @@ class JoinerNode(Node):
         with self._lock:
             stats, state = self.joiner.stats(), self.joiner.state
             rejected = dict(self.joiner.rejected)
-        self.get_logger().info(
-            f"{int(stats['n_joined'])} submaps joined, {int(stats['n_rejected'])} rejected {rejected or ''}, "
-            f"last join {stats['last_join_ms']:.2f} ms"
-        )
+        counts = (stats["n_joined"], stats["n_rejected"], self.joiner.n_skipped, self.n_received)
+        if counts != self._summary_counts:  # an idle node says nothing (diagnostics go on)
+            self._summary_counts = counts
+            self.get_logger().info(
+                f"{int(stats['n_joined'])} submaps joined, {int(stats['n_rejected'])} rejected {rejected or ''}, "
+                f"last join {stats['last_join_ms']:.2f} ms"
+            )
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.get_name()}: joining", hardware_id=self.get_name())
         status.message = "joining" if state.n_joined else "waiting for submaps"
         if stats["n_rejected"]:
@@ -551,8 +593,8 @@ class JoinerNode(Node):
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 
-def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int]:
-    """Decode the raw CDR of a ``local_map`` or ``pose_graph`` message into a local map and its sequence number.
+def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int, Stamp]:
+    """Decode the raw CDR of a ``local_map`` or ``pose_graph`` message into a local map, its sequence number and stamp.
 
     Sizes beyond ``limits`` are refused from the message's layout before anything is allocated;
     the numbers are checked by the validation of the decoded map or graph and of the chunk's map.
@@ -568,9 +610,9 @@ def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int]
         raise MessageError(f"not a serialized std_msgs/Float64MultiArray ({type(exc).__name__}: {exc})") from None
     if topic == "pose_graph":
         chunk = decode_chunk(*parts(msg), limits=limits)
-        return chunk_to_local_map(chunk.graph, limits), chunk.seq
+        return chunk_to_local_map(chunk.graph, limits), chunk.seq, chunk.stamp
     decoded = decode_map(*parts(msg), limits=limits)
-    return decoded.local_map, decoded.seq
+    return decoded.local_map, decoded.seq, decoded.stamp
 
 
 def status_header(node: Node) -> Any:

@@ -22,7 +22,7 @@ from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
 from linear_slam_ros.ros.player import play
-from msg_adapters import decode_map, encode_map
+from msg_adapters import Stamp, decode_map, encode_map
 from msg_adapters.ros import to_msg
 from ros_support import REPO, wait_for_global_map
 from ros_support import dataset_bag as _bag
@@ -227,3 +227,13 @@ def test_pose_graph_chunks_through_lago(name, node, start_joiner, read_benchmark
         "end_to_end_seconds": t_final - t0, "node_join_ms_p99": final.stats["join_ms_p99"],
         "chi2_lago_chunks_joined": chi2_graph, "chi2_dataset_maps_dc": chi2_dc, "chi2_nonlinear_ls": chi2_nls,
     }, indent=2) + "\n")
+
+
+def test_outputs_carry_the_newest_joined_submaps_stamp(node, start_joiner):
+    """global_map (and the views) are stamped with the data's time, not the node's clock."""
+    maps = _synthetic(4)
+    joiner = start_joiner(publish_rate=20.0)
+    stamps = [Stamp(1_700_000_000 + i, 1000 * i) for i in range(1, len(maps) + 1)]
+    _publish_all(node, joiner.topic("local_map"), [to_msg(encode_map(m, i, stamps[i - 1])) for i, m in enumerate(maps, start=1)])
+    final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 60.0, joiner)
+    assert final.stamp == stamps[-1]

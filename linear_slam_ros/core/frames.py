@@ -253,12 +253,7 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     if new_frame_id == local_map.frame_id:
         return local_map
     new_key = pose_key(new_frame_id)
-    slot = local_map.index_of(new_key)
-    if slot is None:
-        raise FrameError(
-            f"cannot change map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
-            f"pose {new_frame_id}: that pose is not in the map"
-        )
+    slot = _frame_slot(local_map, new_frame_id)
     dim = local_map.dim
     if not sp.issparse(local_map.info):
         # Dense map: the slot stays in the vectorised blocks (its entries are overwritten by the
@@ -297,14 +292,24 @@ def estimate_in_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     """
     if new_frame_id == local_map.frame_id:
         return local_map
-    slot = local_map.index_of(pose_key(new_frame_id))
-    if slot is None:
-        raise FrameError(
-            f"cannot move map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
-            f"pose {new_frame_id}: that pose is not in the map"
-        )
+    slot = _frame_slot(local_map, new_frame_id)
     x_new = reframe(local_map.dim, local_map.x, frame_layout(local_map.dim, local_map.kinds, slot, local_map.offsets))
     ids = local_map.ids.copy()
     ids[slot] = local_map.frame_id
     placeholder = sp.identity(local_map.state_dim, format="csr")
     return local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=placeholder)
+
+
+def _frame_slot(local_map: LocalMap, new_frame_id: int) -> int:
+    """Return the variable index of pose ``new_frame_id`` in the map.
+
+    Raises:
+        FrameError: the pose is not a variable of the map.
+    """
+    slot = local_map.index_of(pose_key(new_frame_id))
+    if slot is None:
+        raise FrameError(
+            f"cannot change map {local_map.name!r} (frame pose {local_map.frame_id}) to the frame of "
+            f"pose {new_frame_id}: that pose is not in the map"
+        )
+    return slot

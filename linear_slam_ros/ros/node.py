@@ -243,15 +243,16 @@ class JoinerNode(Node):
         handled) is not journaled: replaying it would add nothing.
         """
         with self._lock:
-            if journal is not None and self.store is not None and not self.joiner.already_handled(seq):
+            fresh = not self.joiner.already_handled(seq)  # else the joiner skips it
+            if journal is not None and self.store is not None and fresh:
                 t0, c0 = time.perf_counter(), time.thread_time()
                 record = self.store.journal.append(journal[0], journal[1], time.time_ns())  # receive time, wall clock
                 self._persist_seconds["journal"] += time.perf_counter() - t0
                 self._cpu_seconds["journal"] += time.thread_time() - c0
             c0 = time.thread_time()
-            if stamp is not None and not self.joiner.already_handled(seq):
+            if stamp is not None and fresh:
                 self._data_stamps[seq] = stamp
-            if arrived is not None and not self.joiner.already_handled(seq):
+            if arrived is not None and fresh:
                 self._arrived[seq] = arrived
                 if self._timeline is not None:
                     self._timeline[seq] = [arrived, np.nan, np.nan, np.nan]

@@ -13,13 +13,18 @@ export LINEAR_SLAM_CACHE := $(CURDIR)/.cache/datasets
 SOURCES := $(shell find linear_slam_ros msg_adapters config resource launch rviz -type f \( -name '*.py' -o -name '*.yaml' -o -name '*.rviz' -o -name 'linear_slam_ros' \)) setup.py setup.cfg package.xml
 ACTIVATE := set +u && source install/setup.bash && set -u
 
-.PHONY: run test test-slow benchmark setup bags clean
+.PHONY: run run-sim test test-slow benchmark setup bags clean
 
 ## Command one: set up, then replay the VicPark200 bag through the joiner node into out/ (the committed
 ## bags/vicpark200, remade from the dataset archive when $(DATASETS) is there).
 run: setup $(if $(wildcard $(DATASETS)/VicPark_200_local_maps.tar.xz),bags/vicpark200/metadata.yaml)
 	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.demo --bag bags/vicpark200 --out out \
 	  $(if $(wildcard $(DATASETS)/VicPark_200_local_maps.tar.xz),--dataset $(DATASETS)/VicPark_200_local_maps.tar.xz)
+
+## The live front-end example instead of the bag: sim_frontend publishes 200 local maps of its seeded
+## park world into the joiner (20 a second); the same files, in out/sim/.
+run-sim: setup
+	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.demo --sim --out out/sim
 
 ## Command two: set up, then run the test suite (slow dataset runs excluded: make test-slow).
 test: setup
@@ -30,12 +35,19 @@ test-slow: setup
 
 ## Figures (not a test): every dataset with every method offline, beside the reference program when it is there
 ## (benchmark.{md,json}); every stream through the node (node.{md,json}, node/<stream>/timing.png); persistence.
-benchmark: setup bags
+benchmark: setup bags $(VENV)/.bench-installed
 	$(PY) -m linear_slam_ros benchmark --datasets-dir $(DATASETS) --out out/benchmark
+	$(PY) -m linear_slam_ros.refinement.race --datasets-dir $(DATASETS) --out out/benchmark
 	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.bench_node --datasets-dir $(DATASETS) --out out/benchmark
 	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.bench_persistence --datasets-dir $(DATASETS) --out out/benchmark
+	$(PY) -m linear_slam_ros.evaluation.islands --datasets-dir $(DATASETS) --out out/benchmark
 
 setup: $(VENV)/.installed install/.built .cache/datasets/.unpacked
+
+# gtsam for the race against iSAM2 (make benchmark only; never a dependency of the node).
+$(VENV)/.bench-installed: requirements-bench.txt $(VENV)/.installed
+	$(VENV)/bin/pip install --disable-pip-version-check -q -r requirements-bench.txt
+	touch $@
 
 # CHOLMOD (scikit-sparse) builds against Debian's SuiteSparse and runs on its OpenBLAS.
 SUITESPARSE_H := /usr/include/suitesparse/cholmod.h

@@ -8,6 +8,7 @@ here with ``@encode_global.register``.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -17,7 +18,9 @@ from msg_adapters.layout import MAP_KIND_GLOBAL, Encoded, Stamp, encode_feature_
 
 
 @functools.singledispatch
-def encode_global(joined: object, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float]) -> Encoded:
+def encode_global(
+    joined: object, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float], islands: Sequence[int] | None = None
+) -> Encoded:
     """Encode a joined map as the ``global_map`` message (``map_kind`` 1).
 
     Args:
@@ -26,6 +29,7 @@ def encode_global(joined: object, seq: int, stamp: Stamp, n_submaps: int, stats:
         stamp: the message stamp.
         n_submaps: submaps joined.
         stats: the ``stats`` segment (:meth:`linear_slam_ros.joiner.joiner.Joiner.stats`).
+        islands: the ``islands`` segment of pose maps: submaps in each island, the main one first.
 
     Raises:
         TypeError: no encoder is registered for the map's type.
@@ -34,12 +38,16 @@ def encode_global(joined: object, seq: int, stamp: Stamp, n_submaps: int, stats:
 
 
 @encode_global.register
-def _(joined: LocalMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float]) -> Encoded:
-    return encode_map(joined, seq, stamp, MAP_KIND_GLOBAL, n_submaps, stats)
+def _(
+    joined: LocalMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float], islands: Sequence[int] | None = None
+) -> Encoded:
+    return encode_map(joined, seq, stamp, MAP_KIND_GLOBAL, n_submaps, stats, islands)
 
 
 @encode_global.register
-def _(joined: FeatureMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float]) -> Encoded:
+def _(
+    joined: FeatureMap, seq: int, stamp: Stamp, n_submaps: int, stats: dict[str, float], islands: Sequence[int] | None = None
+) -> Encoded:
     return encode_feature_map(joined, seq, stamp, MAP_KIND_GLOBAL, n_submaps, stats)
 
 

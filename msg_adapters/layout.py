@@ -19,7 +19,9 @@ Local map and global map (``MAP_KIND_*``)::
     info_vals   k values        /   its non-zeros (a joined map's is sparse; a dense triangle
                                     of VicPark6898's 21292-scalar map would be 1.8 GB)
     stats       (global map only) [n_joined, n_rejected, last_join_ms, join_ms_p50,
-                 join_ms_p99, join_ms_max, join_seconds_total]
+                 join_ms_p99, join_ms_max, join_seconds_total, n_islands]
+    islands     (global map only) submaps in each island: the main island (the one this
+                map is) first, then the others, largest first (README, "Islands")
 
 Feature-only map (the global map of ``map_type: feature-only``): the same segments, with
 ``frame_pose_id = end_pose_id = -1``, every variable a feature, and one more segment::
@@ -75,7 +77,11 @@ MAP_KIND_POSE_GRAPH = 2
 
 MAP_SEGMENTS = ("header", "var_ids", "var_kinds", "state", "info_rows", "info_cols", "info_vals")
 CHUNK_SEGMENTS = ("header", "edge_from", "edge_to", "measurement", "information")
-STATS_FIELDS = ("n_joined", "n_rejected", "last_join_ms", "join_ms_p50", "join_ms_p99", "join_ms_max", "join_seconds_total")
+STATS_FIELDS = (
+    "n_joined", "n_rejected", "last_join_ms", "join_ms_p50", "join_ms_p99", "join_ms_max", "join_seconds_total", "n_islands",
+)
+STATS_FIELDS_V1 = 7
+"""Fields of the stats segment before ``n_islands``: a shorter segment is read as far as it goes."""
 _MAP_HEADER = 9
 _CHUNK_HEADER = 7
 _MAX_EXACT = 2.0**53
@@ -108,6 +114,8 @@ class MapMessage:
     map_kind: int
     n_submaps: int
     stats: dict[str, float] | None = None
+    islands: tuple[int, ...] | None = None
+    """Submaps in each island (global maps: the main island first), when the message says."""
 
 
 @dataclass(frozen=True)
@@ -149,11 +157,13 @@ def encode_map(
     map_kind: int = MAP_KIND_LOCAL,
     n_submaps: int = 1,
     stats: dict[str, float] | None = None,
+    islands: Sequence[int] | None = None,
 ) -> Encoded:
     """Encode a map into the documented layout (information as upper-triangle triplets)."""
     end = -1 if local_map.end_id is None else local_map.end_id
     header = [FORMAT_VERSION, local_map.dim, map_kind, seq, stamp.sec, stamp.nanosec, local_map.frame_id, end, n_submaps]
-    return _encode_map_segments(header, local_map.ids, local_map.kinds, local_map.x, local_map.info, stats)
+    extra_after = [("islands", list(islands))] if islands is not None else []
+    return _encode_map_segments(header, local_map.ids, local_map.kinds, local_map.x, local_map.info, stats, (), extra_after)
 
 
 def encode_feature_map(
@@ -179,6 +189,7 @@ def _encode_map_segments(
     info: InfoMatrix,
     stats: dict[str, float] | None,
     extra: Sequence[tuple[str, npt.ArrayLike]] = (),
+    extra_after: Sequence[tuple[str, npt.ArrayLike]] = (),
 ) -> Encoded:
     upper = sp.triu(to_csr(info), format="coo")
     segments: list[tuple[str, npt.ArrayLike]] = [
@@ -193,6 +204,7 @@ def _encode_map_segments(
     ]
     if stats is not None:
         segments.append(("stats", [float(stats.get(k, 0.0)) for k in STATS_FIELDS]))
+    segments.extend(extra_after)
     return _encode(segments)
 
 
@@ -343,7 +355,7 @@ def _decode_map_fields(
         raise MessageError(f"{what}: repeated information entry")
     stored = symmetric_from_upper(rows, cols, vals, n)
     stats = None
-    if "stats" in seg and seg["stats"].size == len(STATS_FIELDS):
+    if "stats" in seg and STATS_FIELDS_V1 <= seg["stats"].size <= len(STATS_FIELDS):
         stats = {k: float(v) for k, v in zip(STATS_FIELDS, seg["stats"], strict=False)}
     return _MapFields(
         dim, map_kind, seq, Stamp(int(h[4]), int(h[5])), int(h[6]), None if h[7] < 0 else int(h[7]), int(h[8]),
@@ -379,7 +391,8 @@ def decode_map(
         raise InvalidMapError(f"local map {name!r}: variable kind must be 0 (pose) or 1 (feature), got {bad}")
     local_map = LocalMap.trusted(f.dim, f.frame_pose_id, f.end_pose_id, f.ids, kinds.astype(np.int8), f.state, f.info, name=name)
     local_map.validate(lim)
-    return MapMessage(local_map, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats)
+    islands = tuple(_ints(f.segments["islands"], "islands", f.what).tolist()) if "islands" in f.segments else None
+    return MapMessage(local_map, f.seq, f.stamp, f.map_kind, f.n_submaps, f.stats, islands)
 
 
 def decode_feature_map(

@@ -1,7 +1,11 @@
-"""Core maps -> the standard messages a person looks at (nav_msgs/Path, MarkerArray, PoseStamped).
+"""Core maps -> the standard messages a person looks at (nav_msgs/Path, MarkerArray,
+PoseWithCovarianceStamped, TransformStamped).
 
 Orientation convention: a dataset pose's ``R`` maps world directions into the robot frame, so
-the robot's orientation in the world (what ROS poses carry) is ``R^T``.
+the robot's orientation in the world (what ROS poses carry) is ``R^T``. In 3D,
+``R = RX(gamma) RY(beta) RZ(alpha)`` (passive) gives ``R^T = Rz(alpha) Ry(beta) Rx(gamma)``
+(active): the ROS roll, pitch and yaw of the pose are ``gamma``, ``beta`` and ``alpha``; in 2D
+the yaw is ``phi``. Covariances are reordered accordingly (:func:`ros_pose_covariance`).
 """
 
 from __future__ import annotations
@@ -13,7 +17,16 @@ import numpy as np
 import numpy.typing as npt
 import scipy.linalg.lapack
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import Point, Pose, PoseStamped, Quaternion
+from geometry_msgs.msg import (
+    Point,
+    Pose,
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    Quaternion,
+    Transform,
+    TransformStamped,
+    Vector3,
+)
 from nav_msgs.msg import Path
 from scipy.spatial.transform import Rotation
 from std_msgs.msg import ColorRGBA, Header
@@ -68,14 +81,69 @@ def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
     return msg
 
 
-def current_pose_msg(global_map: LocalMap, end_id: int, frame_id: str, stamp: Time) -> PoseStamped:
-    """Return pose ``end_id`` of a map (in the first pose's frame) as ``geometry_msgs/PoseStamped``."""
-    return pose_stamped_msg(global_map.dim, global_map.pose(end_id), frame_id, stamp)
-
-
 def pose_stamped_msg(dim: int, pose: FloatArray, frame_id: str, stamp: Time) -> PoseStamped:
     """Return a dataset-convention pose (``(3,)`` or ``(6,)``, in frame ``frame_id``) as ``geometry_msgs/PoseStamped``."""
     return PoseStamped(header=Header(stamp=stamp, frame_id=frame_id), pose=pose_to_msg(dim, pose))
+
+
+ROS_POSE_ORDER = {2: (0, 1, 5), 3: (0, 1, 2, 5, 4, 3)}
+"""Row of the ROS 6x6 pose covariance (``x y z roll pitch yaw``) of each dataset-convention
+coordinate: 2D ``x y phi``, 3D ``x y z alpha beta gamma`` (``alpha`` is the yaw, ``gamma`` the roll)."""
+
+_ROS_FLAT_INDEX = {d: (6 * np.asarray(r)[:, None] + np.asarray(r)[None, :]).reshape(-1) for d, r in ROS_POSE_ORDER.items()}
+"""Where each entry of a row-major dataset-convention covariance goes in the flat ROS 6x6 matrix."""
+
+
+def ros_pose_covariance(dim: int, cov: FloatArray) -> FloatArray:
+    """Return a dataset-convention pose covariance as the 36 row-major values of a ROS pose covariance.
+
+    Args:
+        dim: 2 or 3.
+        cov: ``(3, 3)`` covariance of ``x y phi`` or ``(6, 6)`` of ``x y z alpha beta gamma``
+            (m², m·rad, rad²).
+
+    Returns:
+        ``(36,)``: the 6x6 matrix over ``x y z roll pitch yaw`` (m², m·rad, rad²), row-major.
+        2D: the ``x y yaw`` rows and columns carry ``cov``; the ``z``, ``roll`` and ``pitch``
+        rows and columns are zero (a planar robot: those coordinates are fixed; slam_toolbox's
+        pose fills the same entries).
+    """
+    out = np.zeros(36)
+    out[_ROS_FLAT_INDEX[dim]] = np.asarray(cov, dtype=np.float64).reshape(-1)
+    return out
+
+
+def pose_with_covariance_msg(
+    dim: int, pose: FloatArray, cov: FloatArray | None, frame_id: str, stamp: Time
+) -> PoseWithCovarianceStamped:
+    """Return a dataset-convention pose and its covariance as ``geometry_msgs/PoseWithCovarianceStamped``.
+
+    Args:
+        dim: 2 or 3.
+        pose: ``(3,)`` or ``(6,)`` in frame ``frame_id`` (m, rad).
+        cov: its covariance (see :func:`ros_pose_covariance`); ``None``: unknown, written as
+            ``-1`` in the first element and zeros elsewhere (the ``sensor_msgs`` convention).
+        frame_id: ``header.frame_id``.
+        stamp: header stamp.
+    """
+    msg = PoseWithCovarianceStamped(header=Header(stamp=stamp, frame_id=frame_id))
+    msg.pose.pose = pose_to_msg(dim, pose)
+    msg.pose.covariance = ros_pose_covariance(dim, cov) if cov is not None else np.array([-1.0] + [0.0] * 35)
+    return msg
+
+
+def transform_msg(dim: int, pose: FloatArray, parent_frame: str, child_frame: str, stamp: Time) -> TransformStamped:
+    """Return a dataset-convention pose as the ``geometry_msgs/TransformStamped`` ``parent_frame`` -> ``child_frame``.
+
+    ``pose`` is the child frame's pose in the parent frame (``(3,)`` or ``(6,)``, m and rad):
+    the transform maps child coordinates into the parent frame, as TF's do.
+    """
+    p = pose_to_msg(dim, pose)
+    translation = Vector3(x=p.position.x, y=p.position.y, z=p.position.z)
+    header = Header(stamp=stamp, frame_id=parent_frame)
+    return TransformStamped(
+        header=header, child_frame_id=child_frame, transform=Transform(translation=translation, rotation=p.orientation)
+    )
 
 
 def feature_markers(
@@ -169,11 +237,14 @@ def feature_map_covariances(feature_map: FeatureMap, max_state: int) -> dict[int
 
 
 class MapViews(NamedTuple):
-    """The viewing messages of a joined map (``None``: the map type has no such view)."""
+    """The viewing messages of a joined map (``None``: the map type has no such view).
+
+    The newest pose (with its covariance) is not a view: the node computes its covariance
+    (:mod:`linear_slam_ros.core.pose_covariance`) and converts it with :func:`pose_with_covariance_msg`.
+    """
 
     path: Path | None
     markers: MarkerArray
-    pose: PoseStamped | None
 
 
 @functools.singledispatch
@@ -201,17 +272,16 @@ def _(joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, e
     else:
         in_first = estimate_in_frame(joined, first)
     markers = feature_markers(in_first, frame_id, stamp, feature_covariances(in_first, ellipse_max_state))
-    pose = current_pose_msg(in_first, joined.end_id, frame_id, stamp) if joined.end_id is not None else None
-    return MapViews(path_msg(in_first, frame_id, stamp), markers, pose)
+    return MapViews(path_msg(in_first, frame_id, stamp), markers)
 
 
 @map_views.register
 def _(joined: FeatureMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
     covs = feature_map_covariances(joined, ellipse_max_state)
-    return MapViews(None, point_markers(joined.dim, joined.positions(), frame_id, stamp, covs), None)
+    return MapViews(None, point_markers(joined.dim, joined.positions(), frame_id, stamp, covs))
 
 
 def empty_views(frame_id: str, stamp: Time) -> MapViews:
     """Return the views of an empty map: an empty path and a marker array that deletes every marker."""
     header = Header(frame_id=frame_id, stamp=stamp)
-    return MapViews(Path(header=header), MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)]), None)
+    return MapViews(Path(header=header), MarkerArray(markers=[Marker(header=header, action=Marker.DELETEALL)]))

@@ -32,9 +32,10 @@ LAYERS: dict[str, int] = {
     "msg_adapters": 3,
     "linear_slam_ros.joiner": 4,
     "linear_slam_ros.evaluation": 5,
-    "linear_slam_ros.cli": 6,
-    "linear_slam_ros.ros": 7,
-    "linear_slam_ros.__main__": 8,
+    "linear_slam_ros.refinement": 6,
+    "linear_slam_ros.cli": 7,
+    "linear_slam_ros.ros": 8,
+    "linear_slam_ros.__main__": 9,
 }
 
 CLI = "linear_slam_ros.cli"

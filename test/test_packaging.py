@@ -47,6 +47,8 @@ KNOWN_KEYS: dict[str, str] = {
     "std_srvs": _JAZZY,
     "builtin_interfaces": _JAZZY,
     "rcl_interfaces": _JAZZY,
+    "rosgraph_msgs": _JAZZY + ": rosgraph_msgs is in ros2/rcl_interfaces",
+    "tf2_ros": _JAZZY + ": tf2_ros is in ros2/geometry2",
     "ament_index_python": _JAZZY,
     "launch": _JAZZY,
     "launch_ros": _JAZZY,

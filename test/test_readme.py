@@ -8,6 +8,7 @@ from pathlib import Path
 import yaml
 
 from linear_slam_ros.joiner.config import parameter_declarations
+from linear_slam_ros.ros.tf_output import TF_PARAMETERS
 from msg_adapters import decode_map
 from msg_adapters.ros import parts
 
@@ -25,8 +26,8 @@ def _table() -> dict[str, tuple[str, str]]:
     return rows
 
 
-PARAMETERS = {d.name: d for d in parameter_declarations()}
-"""The node declares exactly these (``JoinerNode.__init__``)."""
+PARAMETERS = {d.name: d for d in (*parameter_declarations(), *TF_PARAMETERS)}
+"""The node declares exactly these (``JoinerNode.__init__``): the joiner's configuration and its TF output's."""
 
 
 def test_parameter_table_matches_declarations():
@@ -43,9 +44,13 @@ def test_config_file_sets_declared_parameters_to_their_defaults():
 
 
 def test_front_end_example_produces_a_valid_local_map():
-    code = README.split("**A front-end in 20 lines**")[1].split("```python")[1].split("```")[0]
+    code = README.split("**A front-end in 25 lines**")[1].split("```python")[1].split("```")[0]
     function = code.split("rclpy.init()")[0]  # the example without starting ROS
-    assert len(code.strip().splitlines()) <= 22
+    assert len(code.strip().splitlines()) <= 27
+    # a stream's QoS: keep all, reliable; never the keep-last-10 idiom (it drops submaps under load)
+    assert "HistoryPolicy.KEEP_ALL" in code and "ReliabilityPolicy.RELIABLE" in code
+    assert not re.search(r"create_publisher\([^)]*, 10\)", code)
+    assert "get_subscription_count()" in code and "wait_for_all_acked()" in code
     namespace: dict[str, object] = {}
     exec(function, namespace)  # noqa: S102 - the README's own example
     msg = namespace["local_map_msg"](1, 0, 1, [1, 7], [0, 1], [1.0, 0.0, 0.05, 2.0, 1.0], [(i, i, 100.0) for i in range(5)])

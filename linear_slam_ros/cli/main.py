@@ -6,10 +6,12 @@ Only parses arguments and calls library functions; everything it does is scripta
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import sys
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,8 +31,10 @@ from linear_slam_ros.io.datasets import Dataset, MapKind, read_dataset, resolve_
 from linear_slam_ros.io.results import write_map, write_report, write_result, write_tum_poses
 from linear_slam_ros.joiner.config import JoinerConfig
 from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.robots import qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, FoldStrategy, JoinMethod, MapType
+from linear_slam_ros.joining.islands import maps_within
 from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps, star_local_maps
 from linear_slam_ros.pose_graph.g2o import read_g2o, write_g2o
 from linear_slam_ros.pose_graph.lago import lago
@@ -122,6 +126,52 @@ def _write_g2o(out_dir: Path, source: Path, dataset: Dataset, joined: LocalMap) 
     write_g2o(out_dir / "graph.g2o", graph, pose_values(joined))
 
 
+@dataclass(frozen=True)
+class Sources:
+    """What the dataset arguments of join / refine name, in joining order.
+
+    Attributes:
+        dataset: every local map, in the order they are joined (several robots' interleaved, one
+            submap of each in turn, with global pose ids: :mod:`~linear_slam_ros.joiner.robots`).
+        seqs: each map's sequence number in its robot's stream (its file's number in a folder).
+        robots: each map's robot (``""``: a single robot).
+        path: the first source (a ``.g2o`` file's edges are written back with ``--format g2o``).
+        needs_joiner: the maps skip numbers or come from several robots: they are joined through the
+            node's state machine (:func:`~linear_slam_ros.evaluation.runner.run_joiner`), with islands.
+    """
+
+    dataset: Dataset
+    seqs: tuple[int, ...]
+    robots: tuple[str, ...]
+    path: Path
+    needs_joiner: bool
+
+
+def read_sources(paths: Sequence[Path], kind: str | None, robots: bool) -> Sources:
+    """Read the dataset arguments: one dataset, or with ``robots`` one per robot (``robot0``, ``robot1``, ...).
+
+    Raises:
+        ConfigError: several datasets without ``robots``, or robots of different dimensions.
+        LinearSlamError: a dataset cannot be read.
+    """
+    if len(paths) > 1 and not robots:
+        raise ConfigError(f"{len(paths)} datasets given: joining several needs --robots (each one robot's stream)")
+    sets = [read_source(p, kind=kind) for p in paths]
+    if not robots:
+        d = sets[0]
+        return Sources(d, d.seqs, ("",) * len(d.maps), paths[0], bool(d.numbers))
+    if len({d.dim for d in sets}) > 1:
+        raise ConfigError("robots of different dimensions: " + ", ".join(f"{d.name} is {d.dim}D" for d in sets))
+    names = [f"robot{k}" for k in range(len(sets))]
+    slots = robot_slots(names)
+    streams = [[(seq, qualify(m, slots[name]), name) for seq, m in zip(d.seqs, d.maps, strict=True)]
+               for name, d in zip(names, sets, strict=True)]
+    order = [item for turn in itertools.zip_longest(*streams) for item in turn if item is not None]
+    kinds = [d.kind for d in sets if d.kind.has_features] or [sets[0].kind]
+    dataset = Dataset("+".join(d.name for d in sets), kinds[0], tuple(m for _, m, _ in order))
+    return Sources(dataset, tuple(s for s, _, _ in order), tuple(r for _, _, r in order), paths[0], True)
+
+
 def join_dataset(dataset: Dataset, method: JoinMethod) -> JoinRun:
     """Join a dataset's local maps (as they are) with a progress bar on long runs."""
     n_steps = len(dataset.maps) if get_strategy(method).run_step == PER_SUBMAP else len(dataset.maps) - 1
@@ -148,7 +198,7 @@ def report_for(run: JoinRun, dataset: Dataset, chi2_value: float) -> dict[str, o
 
 def cmd_join(args: argparse.Namespace) -> int:
     """Join a dataset and write poses, features and report.json."""
-    return _join_command(args, refine_too=False)
+    return _join_command(args, refine_too=bool(args.refine))
 
 
 def cmd_refine(args: argparse.Namespace) -> int:
@@ -170,16 +220,25 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     gated: list[dict[str, object]] = []
     formats = list(args.format)
     _check_formats(formats, config.map_type)
-    dataset = read_source(args.dataset, kind=args.kind)
+    sources = read_sources(args.dataset, args.kind, args.robots)
+    dataset = sources.dataset
     _check_formats(formats, config.map_type, dataset)
     pose_formats = [f for f in formats if f != "g2o"]
     run: JoinRun | None = None
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
-    if args.initial_state is not None or args.save_state is not None or gate is not None:
+    islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
+    if args.initial_state is not None or args.save_state is not None or gate is not None or sources.needs_joiner:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
-            run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated)
+            run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
+                                    sources.seqs if sources.needs_joiner else None, sources.robots)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
+        summary = saved.state.islands
+        islands = {"n_islands": len(summary), "island_sizes": sorted((i.n_submaps for i in summary), reverse=True)}
+        if len(summary) > 1:
+            logger.warning("%s: the submaps form %d islands of %s submaps; the results hold the main island (the "
+                           "first submap's): %d submaps", dataset.name, len(summary), islands["island_sizes"],
+                           summary[0].n_submaps)
         if args.save_state is not None:
             write_snapshot(args.save_state, saved)
             logger.info("%s: joiner state written to %s", dataset.name, args.save_state)
@@ -188,11 +247,12 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     method = config.mode
     if run is None:
         run = join_dataset(dataset, method)
+    covered = maps_within(run.result, dataset.maps) if islands["n_islands"] != 1 else list(dataset.maps)
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin, pose_formats)
         if "g2o" in formats:
-            _write_g2o(args.out, args.dataset, dataset, in_origin)
-        report = report_for(run, dataset, chi2(in_origin, dataset.maps))
+            _write_g2o(args.out, sources.path, dataset, in_origin)
+        report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands}
         if gate is not None:
             report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated)})
         write_report(args.out, report)
@@ -202,12 +262,19 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         )
         return 0
     t0 = time.perf_counter()
-    refined = refine(run.result, dataset.maps)
+    if getattr(args, "refine", False):  # join --refine: the node's refiner, run over the whole stream to convergence
+        from linear_slam_ros.evaluation.nonlinear import RefineResult
+        from linear_slam_ros.refinement.online import RefinerConfig, refine_offline
+
+        done = refine_offline(covered, run.result, RefinerConfig(chi2_rtol=1e-13))
+        refined = RefineResult(done.map, done.chi2, (done.initial_chi2, done.chi2), done.iterations, done.converged)
+    else:
+        refined = refine(run.result, covered)
     seconds_refine = time.perf_counter() - t0
     in_origin = write_result(args.out, refined.map, origin, pose_formats)
     if "g2o" in formats:
-        _write_g2o(args.out, args.dataset, dataset, in_origin)
-    report = report_for(run, dataset, refined.chi2)
+        _write_g2o(args.out, sources.path, dataset, in_origin)
+    report = {**report_for(run, dataset, refined.chi2), **islands}
     report.update(
         {
             "linear_chi2": refined.chi2_history[0],
@@ -307,10 +374,14 @@ def build_parser() -> argparse.ArgumentParser:
         )
 
     def common(p: argparse.ArgumentParser) -> None:
-        p.add_argument("dataset", type=Path,
-                       help="folder of localmap_<i>.txt files, a .tar.xz archive, a bag of local_map or pose_graph "
-                            "messages (e.g. bags/vicpark200), or a .g2o pose graph (2D or 3D: "
-                            "joined as pose-only local maps, one per pose that edges leave)")
+        p.add_argument("dataset", type=Path, nargs="+",
+                       help="folder of localmap_<i>.txt files (numbers may skip: lost submaps, joined as islands), "
+                            "a .tar.xz archive, a bag of local_map or pose_graph messages (e.g. bags/vicpark200), or a "
+                            ".g2o pose graph (2D or 3D: joined as pose-only local maps, one per pose that edges "
+                            "leave); several with --robots")
+        p.add_argument("--robots", action="store_true",
+                       help="each dataset is one robot's stream (robot k: pose ids k * 2^32 + id, feature ids "
+                            "shared), joined into one map as if published concurrently")
         p.add_argument("--method", choices=[m.value for m in JoinMethod], default=JoinMethod.DC.value, help="joining method")
         p.add_argument("--kind", choices=[k.value for k in MapKind], default=None, help="override the detected map kind")
         p.add_argument("--out", type=Path, required=True, help="output folder")
@@ -330,6 +401,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_join = sub.add_parser("join", help="join a dataset's local maps", formatter_class=defaults)
     common(p_join)
+    p_join.add_argument("--refine", action="store_true",
+                        help="then refine by Gauss-Newton with the node's refiner (linear_slam_ros.refinement), "
+                             "warm-started from the linear result; writes the refined map (as the refine command)")
     p_join.set_defaults(func=cmd_join)
     p_ref = sub.add_parser("refine", help="join, then refine by Gauss-Newton (Nonlinear LS)", formatter_class=defaults)
     common(p_ref)

@@ -152,6 +152,146 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
 
 
+def _union_pattern(
+    n: int, indptr_a: npt.NDArray[np.int64], indices_a: npt.NDArray[np.int64], indptr_b: npt.NDArray[np.int64],
+    indices_b: npt.NDArray[np.int64],
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]:
+    """The CSC pattern (sorted) holding the entries of two ``n x n`` CSC patterns."""
+    cols = np.arange(n, dtype=np.int64)
+    keys = np.union1d(
+        np.repeat(cols, np.diff(indptr_a)) * n + indices_a, np.repeat(cols, np.diff(indptr_b)) * n + indices_b
+    )
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys // n, minlength=n), out=indptr[1:])
+    return indptr, np.ascontiguousarray(keys % n)
+
+
+class ReusedAnalysis:
+    """:func:`solve_spd` for a sequence of matrices that mostly share one sparsity pattern.
+
+    CHOLMOD's analysis (fill-reducing ordering, symbolic factorisation) is done once per pattern
+    and kept: a matrix with the pattern of the previous one is only factorised numerically (the
+    Gauss-Newton steps of one refinement round). A new pattern is analysed afresh. Not
+    thread-safe; :meth:`close` (or garbage collection) frees CHOLMOD's memory.
+
+    Attributes:
+        analyses: how many times a pattern was analysed.
+        solves: how many systems were solved.
+    """
+
+    def __init__(self) -> None:
+        self.analyses = 0
+        self.solves = 0
+        self._common: ctypes.Array[ctypes.c_char] | None = None
+        self._factor: ctypes._Pointer[_Factor] | None = None
+        self._pattern: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
+
+    def solve(self, matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
+        """Solve ``matrix @ x = rhs`` (as :func:`solve_spd`), reusing the analysis of the same pattern.
+
+        Raises:
+            SolverError: the library is missing, or the matrix is not positive definite.
+        """
+        if _LIB is None:
+            raise SolverError("CHOLMOD (libcholmod) is not installed")
+        lib = _LIB
+        csc = sp.csc_matrix(matrix)
+        csc.sort_indices()
+        n = csc.shape[0]
+        indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(csc.indices, dtype=np.int64)
+        data = np.ascontiguousarray(csc.data, dtype=np.float64)
+        b = np.asfortranarray(rhs, dtype=np.float64)
+        ncol = 1 if b.ndim == 1 else b.shape[1]
+        within = self._within_pattern(n, indptr, indices, data)
+        if within is None:  # entries the kept pattern lacks: analyse its union with this one (or this one)
+            kept = self._pattern
+            same_size = kept is not None and kept[0].size == n + 1
+            self._pattern = _union_pattern(n, kept[0], kept[1], indptr, indices) if kept is not None and same_size else (
+                indptr, indices
+            )
+            self._free_factor()
+            within = self._within_pattern(n, indptr, indices, data)
+            assert within is not None
+        indptr, indices, data = within  # the kept pattern, this matrix's entries in it (explicit zeros elsewhere)
+        a_struct = _Sparse(
+            n, n, data.size, indptr.ctypes.data, indices.ctypes.data, None, data.ctypes.data, None,
+            1, _LONG, _REAL, _DOUBLE, 1, 1,
+        )
+        b_struct = _Dense(n, ncol, n * ncol, n, b.ctypes.data, None, _REAL, _DOUBLE)
+        if self._factor is None:
+            if self._common is None:
+                self._common = ctypes.create_string_buffer(_COMMON_BYTES)
+                lib.cholmod_l_start(self._common)
+            factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), self._common)
+            if not factor:
+                raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
+            self._factor = factor
+            self.analyses += 1
+        assert self._factor is not None and self._common is not None
+        lib.cholmod_l_factorize(ctypes.byref(a_struct), self._factor, self._common)
+        if not _positive_definite(self._factor.contents):
+            self._free_factor()  # a failed factorisation is not reused (the pattern is)
+            raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
+        solution = lib.cholmod_l_solve(_SYS_A, self._factor, ctypes.byref(b_struct), self._common)
+        if not solution:
+            raise SolverError(f"CHOLMOD could not solve a {n}x{n} system")
+        try:
+            out_ptr = ctypes.cast(solution.contents.x, ctypes.POINTER(ctypes.c_double))
+            x = np.ctypeslib.as_array(out_ptr, shape=(ncol, n)).T.copy()
+        finally:
+            lib.cholmod_l_free_dense(ctypes.byref(solution), self._common)
+        self.solves += 1
+        return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
+
+    def _within_pattern(
+        self, n: int, indptr: npt.NDArray[np.int64], indices: npt.NDArray[np.int64], data: FloatArray,
+    ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray] | None:
+        """The kept pattern and ``data`` scattered into it, when the matrix's pattern is a part of it
+        (sparse products drop entries that come out exactly zero, so steps differ); else ``None``."""
+        if self._pattern is None or self._pattern[0].size != n + 1:
+            return None
+        old_indptr, old_indices = self._pattern
+        if np.array_equal(old_indptr, indptr) and np.array_equal(old_indices, indices):
+            return indptr, indices, data
+        if indices.size > old_indices.size:
+            return None
+        old_keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(old_indptr)) * n + old_indices  # sorted
+        keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
+        pos = np.searchsorted(old_keys, keys)
+        if pos.size and (pos[-1] >= old_keys.size or not np.array_equal(old_keys[np.minimum(pos, old_keys.size - 1)], keys)):
+            return None
+        full = np.zeros(old_indices.size)
+        full[pos] = data
+        return old_indptr, old_indices, full
+
+    def _free_factor(self) -> None:
+        if self._factor is not None and _LIB is not None and self._common is not None:
+            _LIB.cholmod_l_free_factor(ctypes.byref(self._factor), self._common)
+        self._factor = None
+
+    def expect(self, pattern: sp.spmatrix | sp.sparray) -> None:
+        """Take ``pattern``'s structure (symmetric, ``n x n``; its values are ignored) as the one to analyse
+        next: the matrices that follow have entries within it (e.g. ``|J|^T |W| |J|`` for ``J^T W J``)."""
+        csc = sp.csc_matrix(pattern)
+        csc.sort_indices()
+        self._free_factor()
+        self._pattern = (
+            np.ascontiguousarray(csc.indptr, dtype=np.int64).copy(), np.ascontiguousarray(csc.indices, dtype=np.int64).copy()
+        )
+
+    def close(self) -> None:
+        """Free the kept analysis and CHOLMOD's workspace (idempotent)."""
+        self._free_factor()
+        self._pattern = None
+        if self._common is not None and _LIB is not None:
+            _LIB.cholmod_l_finish(self._common)
+        self._common = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
 @functools.cache
 def available() -> bool:
     """Whether CHOLMOD loads and solves a known system correctly (checked once)."""

@@ -80,25 +80,74 @@ def gauss_newton(
     converged = False
     it = 0
     for it in range(1, max_iterations + 1):
-        hessian = (jac.T @ (weight @ jac)).tocsr()
-        dx = solve_sparse_spd(hessian, -(jac.T @ (weight @ r)))
-        step = 1.0
-        for _ in range(MAX_HALVINGS):
-            x_try = x + step * dx if apply_step is None else apply_step(x, step * dx)
-            r_try, jac_try = residuals(x_try)
-            chi2_try = float(r_try @ (weight @ r_try))
-            if chi2_try <= chi2 * (1 + 1e-12) + 1e-12:
-                break
-            step *= 0.5
-        else:
+        step = gauss_newton_step(residuals, weight, x, r, jac, chi2, apply_step)
+        if step is None:
             logger.info("Gauss-Newton: no decrease along the step at iteration %d; stopping", it)
             converged = True
             break
-        decrease = chi2 - chi2_try
-        x, r, jac, chi2 = x_try, r_try, jac_try, chi2_try
+        decrease = chi2 - step.chi2
+        x, r, jac, chi2 = step.x, step.r, step.jacobian, step.chi2
         history.append(chi2)
-        logger.debug("Gauss-Newton iteration %d: chi2 %.6f, max step %.3g", it, chi2, np.abs(step * dx).max())
-        if np.abs(step * dx).max() < step_tol or decrease <= chi2_rtol * max(chi2, 1e-300):
+        logger.debug("Gauss-Newton iteration %d: chi2 %.6f, max step %.3g", it, chi2, step.max_step)
+        if step.max_step < step_tol or decrease <= chi2_rtol * max(chi2, 1e-300):
             converged = True
             break
     return GaussNewtonResult(x, jac, chi2, tuple(history), it, converged)
+
+
+@dataclass(frozen=True)
+class GaussNewtonStep:
+    """One accepted Gauss-Newton step (:func:`gauss_newton_step`).
+
+    Attributes:
+        x: ``(n,)`` the new estimate.
+        r: ``(k,)`` residuals at ``x``.
+        jacobian: ``(k, n)`` their Jacobian at ``x``.
+        chi2: ``r^T W r`` at ``x``.
+        max_step: largest component of the step taken (after halving), units of ``x``.
+    """
+
+    x: FloatArray
+    r: FloatArray
+    jacobian: sp.csr_matrix
+    chi2: float
+    max_step: float
+
+
+def gauss_newton_step(
+    residuals: Residuals,
+    weight: sp.csr_matrix | sp.csr_array,
+    x: FloatArray,
+    r: FloatArray,
+    jac: sp.csr_matrix,
+    chi2: float,
+    apply_step: Callable[[FloatArray, FloatArray], FloatArray] | None = None,
+    solve: Callable[[sp.csr_matrix, FloatArray], FloatArray] | None = None,
+) -> GaussNewtonStep | None:
+    """Take one Gauss-Newton step from ``x`` (residuals ``r``, Jacobian ``jac``, objective ``chi2`` there).
+
+    The step solves ``J^T W J dx = -J^T W r``; a step that raises the objective is halved, up to
+    :data:`MAX_HALVINGS` times. This is the iteration of :func:`gauss_newton`, for callers that
+    decide between iterations what to do next (the online refiner).
+
+    ``solve`` solves the SPD normal equations (default :func:`solve_sparse_spd`; the online
+    refiner passes one that keeps CHOLMOD's analysis across the steps of a round).
+
+    Returns:
+        The accepted step, or ``None`` when no halving decreased the objective (a minimum to
+        machine precision).
+
+    Raises:
+        SolverError: the normal equations ``J^T W J`` are singular.
+    """
+    hessian = (jac.T @ (weight @ jac)).tocsr()
+    dx = (solve or solve_sparse_spd)(hessian, -(jac.T @ (weight @ r)))
+    scale = 1.0
+    for _ in range(MAX_HALVINGS):
+        x_try = x + scale * dx if apply_step is None else apply_step(x, scale * dx)
+        r_try, jac_try = residuals(x_try)
+        chi2_try = float(r_try @ (weight @ r_try))
+        if chi2_try <= chi2 * (1 + 1e-12) + 1e-12:
+            return GaussNewtonStep(x_try, r_try, jac_try, chi2_try, float(np.abs(scale * dx).max()) if dx.size else 0.0)
+        scale *= 0.5
+    return None

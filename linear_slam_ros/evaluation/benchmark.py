@@ -338,4 +338,8 @@ def run_benchmark(
         (out_dir / "benchmark.md").write_text(to_markdown(entries))
         del dataset
     logger.info("benchmark written to %s", out_dir / "benchmark.md")
+    if only is None:  # the whole benchmark: also the χ² gate's acceptance (issue 11), gating.{md,json}
+        from linear_slam_ros.evaluation.gating import main as gating_main
+
+        gating_main(["--datasets-dir", str(datasets_dir), "--out", str(out_dir)])
     return entries

@@ -84,12 +84,17 @@ def run_joiner(
     progress: Callable[[int], None] | None = None,
     gate_probability: float | None = None,
     gated: list[dict[str, Any]] | None = None,
+    seqs: Sequence[int] | None = None,
+    robots: Sequence[str] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
     The maps get the sequence numbers that follow the saved state's (1, 2, ... from scratch), so
-    the saved result can be continued by the node or by another run. Timing is per submap.
-    With ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
+    the saved result can be continued by the node or by another run, unless ``seqs`` gives each
+    map's number in its robot's stream (``robots``: each map's robot, ``""`` for one robot); numbers
+    that are skipped are lost submaps, and the streams are complete: every gap is skipped at the
+    end (:meth:`Joiner.flush`) and the maps after it start islands. Timing is per submap. With
+    ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
     ``gated`` (:meth:`GateRecord.as_dict`) and are not errors.
 
     Returns:
@@ -103,7 +108,7 @@ def run_joiner(
         raise InvalidMapError("no local maps to join")
     joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability)
     reasons: list[str] = []
-    joiner.on_reject = lambda reason, message: None if reason == "gated" else reasons.append(message)
+    joiner.on_reject = lambda reason, message: None if reason in ("gated", "gap") else reasons.append(message)
     if initial is not None:
         joiner.restore(initial)
     first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
@@ -112,9 +117,10 @@ def run_joiner(
     with blas_threads(strategy.blas_threads):
         start = time.perf_counter()
         for i, m in enumerate(maps):
-            joiner.offer(m, first_seq + i)
+            joiner.offer(m, seqs[i] if seqs is not None else first_seq + i, robots[i] if robots is not None else "")
             if progress is not None:
                 progress(1)
+        joiner.flush()
         result = global_result(joiner.state)
         seconds = time.perf_counter() - start
     if reasons:

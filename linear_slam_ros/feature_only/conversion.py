@@ -7,10 +7,11 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from linear_slam_ros.core.feature_frames import choose_frame_features, frame_rotation, n_frame_features, reduce_full
 from linear_slam_ros.core.geometry import drot2
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
-from linear_slam_ros.feature_only.frames import _reorder, choose_frame_features, frame_rotation
-from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix, n_frame_features, reduce_full
+from linear_slam_ros.feature_only.frames import _reorder
+from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 
 
 def to_feature_only(local_map: LocalMap, frame_ids: Sequence[int] | None = None) -> FeatureMap:

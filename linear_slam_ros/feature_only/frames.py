@@ -13,66 +13,22 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.core.errors import FrameError, GeometryError
-from linear_slam_ros.core.geometry import drot2, rot2
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.feature_frames import (
+    expand_reduced,
+    frame_rotation,
+    n_frame_features,
+    reduce_full,
+    rotation_derivatives,
+)
 from linear_slam_ros.core.solvers import DENSE_MAX
-from linear_slam_ros.feature_only.maps import FeatureMap, expand_reduced, expansion_matrix, n_frame_features, reduce_full
+from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _DEGENERATE = 1e-9
 """Relative length below which frame features count as coincident (or collinear)."""
-
-
-def frame_rotation(dim: int, origin: FloatArray, x_feat: FloatArray, y_feat: FloatArray | None = None) -> FloatArray:
-    """Return ``R`` of the frame defined by features (eqs. B.2-B.4), checking it is well defined.
-
-    Raises:
-        GeometryError: coincident frame features, or (3D) collinear ones.
-    """
-    v1 = x_feat - origin
-    scale = max(1.0, float(np.abs(origin).max()), float(np.abs(x_feat).max()))
-    n1 = float(np.linalg.norm(v1))
-    if n1 < _DEGENERATE * scale:
-        raise GeometryError(f"frame features F_O and F_X coincide (|F_X - F_O| = {n1:.3g} m)")
-    if dim == 2:
-        return rot2(np.arctan2(v1[1], v1[0]))
-    assert y_feat is not None
-    w = y_feat - origin
-    v3 = np.cross(v1, w)
-    n3 = float(np.linalg.norm(v3))
-    if n3 < _DEGENERATE * n1 * max(float(np.linalg.norm(w)), _DEGENERATE):
-        raise GeometryError(
-            f"frame features F_O, F_X, F_Y are collinear or coincident (|(F_X - F_O) x (F_Y - F_O)| = {n3:.3g})"
-        )
-    v2 = np.cross(v3, v1)
-    return np.stack([v1 / n1, v2 / np.linalg.norm(v2), v3 / n3])
-
-
-def _rotation_derivatives(dim: int, origin: FloatArray, x_feat: FloatArray, y_feat: FloatArray | None) -> list[FloatArray]:
-    """Return ``dR/dv1_j`` (and ``dR/dw_j`` in 3D) for each coordinate ``j``: list of (d, d)."""
-    v1 = x_feat - origin
-    if dim == 2:
-        phi = np.arctan2(v1[1], v1[0])
-        dphi = np.array([-v1[1], v1[0]]) / (v1 @ v1)
-        d_rot = drot2(phi)
-        return [d_rot * dphi[0], d_rot * dphi[1]]
-    assert y_feat is not None
-    w = y_feat - origin
-    v3 = np.cross(v1, w)
-    v2 = np.cross(v3, v1)
-    out = []
-    for dv1, dw in [(e, np.zeros(3)) for e in np.eye(3)] + [(np.zeros(3), e) for e in np.eye(3)]:
-        dv3 = np.cross(dv1, w) + np.cross(v1, dw)
-        dv2 = np.cross(dv3, v1) + np.cross(v3, dv1)
-        rows = []
-        for v, dv in ((v1, dv1), (v2, dv2), (v3, dv3)):
-            nv = np.linalg.norm(v)
-            u = v / nv
-            rows.append((dv - u * (u @ dv)) / nv)
-        out.append(np.stack(rows))
-    return out
 
 
 def reframe_features(dim: int, full: FloatArray, frame_rows: Sequence[int]) -> tuple[FloatArray, sp.csr_matrix]:
@@ -96,7 +52,7 @@ def reframe_features(dim: int, full: FloatArray, frame_rows: Sequence[int]) -> t
     rot = frame_rotation(dim, origin, x_feat, y_feat)
     diff = full - origin
     new = diff @ rot.T
-    derivs = _rotation_derivatives(dim, origin, x_feat, y_feat)
+    derivs = rotation_derivatives(dim, origin, x_feat, y_feat)
     # M[i][:, j] = dR_j (P_i - P_O): (N, d, n_dirs)
     m = np.stack([diff @ d.T for d in derivs], axis=-1)
     rows_idx = np.arange(n)
@@ -171,30 +127,3 @@ def change_feature_frame(fmap: FeatureMap, new_frame_ids: Sequence[int]) -> Feat
         dense = info.toarray() if is_sparse else np.asarray(info)
         info = 0.5 * (dense + dense.T)
     return FeatureMap(d, new_frame_ids, ids_new[k:], x_new, info, fmap.name)
-
-
-def choose_frame_features(dim: int, positions: dict[int, FloatArray], candidates: Sequence[int]) -> tuple[int, ...]:
-    """Pick well-conditioned frame features among ``candidates``: the farthest pair (2D), then in
-    3D the third feature farthest from their line.
-
-    Raises:
-        GeometryError: too few candidates, or all of them degenerate.
-    """
-    cand = [int(c) for c in candidates]
-    k = n_frame_features(dim)
-    if len(cand) < k:
-        raise GeometryError(f"a {dim}D frame needs {k} common features, only {len(cand)} available: {cand}")
-    pts = np.array([positions[c] for c in cand])
-    dist = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
-    i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
-    if dist[i, j] <= 0:
-        raise GeometryError(f"common features {cand} all coincide")
-    if dim == 2:
-        return (cand[i], cand[j])
-    axis = (pts[j] - pts[i]) / dist[i, j]
-    off = pts - pts[i]
-    perp = np.linalg.norm(off - np.outer(off @ axis, axis), axis=1)
-    m = int(np.argmax(perp))
-    if perp[m] <= 1e-6 * dist[i, j]:
-        raise GeometryError(f"common features {cand} are collinear")
-    return (cand[i], cand[j], cand[m])

@@ -8,8 +8,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.feature_only.frames import change_feature_frame, choose_frame_features
-from linear_slam_ros.feature_only.maps import FeatureMap, n_reduced
+from linear_slam_ros.core.feature_frames import choose_frame_features, n_reduced
+from linear_slam_ros.feature_only.frames import change_feature_frame
+from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.joining.divide_conquer import divide_and_conquer
 from linear_slam_ros.joining.pairwise import solve_union
 

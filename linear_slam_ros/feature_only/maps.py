@@ -20,28 +20,12 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import InvalidMapError
+from linear_slam_ros.core.feature_frames import _free_mask, expand_reduced, n_frame_features, n_reduced
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 
 _DEGENERATE = 1e-9
-
-
-def n_frame_features(dim: int) -> int:
-    """Number of features that define a frame: 2 in 2D, 3 in 3D."""
-    return 2 if dim == 2 else 3
-
-
-def _free_mask(dim: int) -> npt.NDArray[np.bool_]:
-    """``(k, d)`` mask of the frame features' coordinates that stay in the state."""
-    if dim == 2:
-        return np.array([[False, False], [True, False]])
-    return np.array([[False, False, False], [True, False, False], [True, True, False]])
-
-
-def n_reduced(dim: int) -> int:
-    """Number of frame-feature scalars kept in the state (1 in 2D, 3 in 3D)."""
-    return int(_free_mask(dim).sum())
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,22 +78,6 @@ class FeatureMap:
     def positions(self) -> dict[int, FloatArray]:
         """Return ``{id: position}`` of every feature, in this map's frame."""
         return dict(zip(self.all_ids.tolist(), self.full(), strict=True))
-
-
-def expand_reduced(dim: int, x: FloatArray) -> FloatArray:
-    """Return full coordinates ``(N, d)`` from a reduced state (frame features first)."""
-    mask = _free_mask(dim)
-    r = int(mask.sum())
-    frame = np.zeros(mask.shape)
-    frame[mask] = x[:r]
-    return np.vstack([frame, x[r:].reshape(-1, dim)])
-
-
-def reduce_full(dim: int, full: FloatArray) -> FloatArray:
-    """Return the reduced state of full coordinates (inverse of :func:`expand_reduced`)."""
-    mask = _free_mask(dim)
-    k = mask.shape[0]
-    return np.concatenate([full[:k][mask], full[k:].ravel()])
 
 
 def expansion_matrix(dim: int, n_features: int) -> sp.csr_matrix:

@@ -9,10 +9,9 @@ import numpy as np
 import numpy.typing as npt
 
 from linear_slam_ros.core.errors import GeometryError
+from linear_slam_ros.core.feature_frames import choose_frame_features, n_frame_features
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE, LocalMap
-from linear_slam_ros.feature_only.frames import choose_frame_features
-from linear_slam_ros.feature_only.maps import n_frame_features
 from linear_slam_ros.joining.pairwise import join_pair
 
 IntArray = npt.NDArray[np.int64]

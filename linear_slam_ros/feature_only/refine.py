@@ -10,10 +10,11 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.feature_frames import expand_reduced, n_frame_features, reduce_full
 from linear_slam_ros.core.least_squares import gauss_newton
 from linear_slam_ros.core.local_map import to_dense
 from linear_slam_ros.feature_only.frames import reframe_features
-from linear_slam_ros.feature_only.maps import FeatureMap, expand_reduced, expansion_matrix, n_frame_features, reduce_full
+from linear_slam_ros.feature_only.maps import FeatureMap, expansion_matrix
 
 FloatArray = npt.NDArray[np.float64]
 

@@ -22,7 +22,7 @@ import shutil
 import tarfile
 import tempfile
 import zlib
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -72,12 +72,19 @@ class Dataset:
     Attributes:
         name: folder or archive stem, e.g. ``"VicPark_200_local_maps"``.
         kind: detected or given map kind.
-        maps: the local maps, ``maps[i]`` read from ``localmap_<i + 1>.txt``.
+        maps: the local maps in order, ``maps[i]`` read from ``localmap_<seqs[i]>.txt``.
+        numbers: the files' numbers when they skip some (lost submaps); empty for ``1..N``.
     """
 
     name: str
     kind: MapKind
     maps: tuple[LocalMap, ...]
+    numbers: tuple[int, ...] = ()
+
+    @property
+    def seqs(self) -> tuple[int, ...]:
+        """Sequence number of each map: its file's number (``1..N`` without gaps)."""
+        return self.numbers if self.numbers else tuple(range(1, len(self.maps) + 1))
 
     @property
     def dim(self) -> int:
@@ -261,7 +268,12 @@ def resolve_dataset_dir(path: str | Path, cache_dir: Path | None = None) -> Path
 
 
 def list_local_map_files(folder: Path) -> list[Path]:
-    """Return ``localmap_<i>.txt`` files of a folder sorted by ``i``, checking ``i`` runs 1..N."""
+    """Return ``localmap_<i>.txt`` files of a folder sorted by ``i``.
+
+    Numbers may skip some (a lost submap): the maps are joined in the order of their numbers and
+    the gap is handled as islands (:mod:`~linear_slam_ros.joiner.islands`); one warning lists the
+    missing numbers.
+    """
     found = []
     for entry in folder.iterdir():
         m = _LOCALMAP_RE.match(entry.name)
@@ -275,11 +287,27 @@ def list_local_map_files(folder: Path) -> list[Path]:
             )
         raise DatasetError(f"{folder}: no localmap_<i>.txt files")
     found.sort()
-    numbers = [i for i, _ in found]
-    if numbers != list(range(1, len(numbers) + 1)):
+    numbers = local_map_numbers([f for _, f in found])
+    if numbers[0] < 1:
+        raise DatasetError(f"{folder}: local map numbers start at 1 (found localmap_{numbers[0]}.txt)")
+    if numbers[-1] != len(numbers):
         missing = sorted(set(range(1, numbers[-1] + 1)) - set(numbers))
-        raise DatasetError(f"{folder}: local maps are not numbered 1..N (missing {missing[:5]})")
+        logger.warning(
+            "%s: %d local map(s) missing (numbers %s%s): the maps are joined in the order of their numbers, "
+            "the gaps as islands", folder, len(missing), missing[:5], "..." if len(missing) > 5 else "",
+        )
     return [f for _, f in found]
+
+
+def local_map_numbers(files: Sequence[Path]) -> tuple[int, ...]:
+    """Return the number ``i`` of each ``localmap_<i>.txt`` file."""
+    out = []
+    for f in files:
+        m = _LOCALMAP_RE.match(f.name)
+        if m is None:
+            raise DatasetError(f"{f} is not named localmap_<i>.txt")
+        out.append(int(m.group(1)))
+    return tuple(out)
 
 
 def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir: Path | None = None) -> Dataset:
@@ -320,7 +348,8 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
             maps.append(to_local_map(raw, map_kind))
             bar.update()
     assert map_kind is not None  # list_local_map_files returns at least one file
-    return Dataset(name, map_kind, tuple(maps))
+    numbers = local_map_numbers(files)
+    return Dataset(name, map_kind, tuple(maps), numbers if numbers[-1] != len(numbers) else ())
 
 
 # ---------------------------------------------------------------------------- synthetic sources

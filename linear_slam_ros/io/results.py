@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import functools
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -106,6 +106,31 @@ def write_tum_poses(path: Path, local_map: LocalMap, origin_id: int) -> None:
         values[row] = local_map.x[local_map.scalar_slice(i)]
     order = np.argsort(ids, kind="stable")
     write_tum(path, local_map.dim, ids[order], values[order])
+
+
+def write_tum_stamped(path: Path, local_map: LocalMap, origin_id: int, stamps: Mapping[int, float]) -> int:
+    """Write the poses of a map that have a stamp as a TUM trajectory, in time order (the node's ``~/save_map``).
+
+    Args:
+        path: the file (replaced; its folder is created).
+        local_map: the map, in the frame of pose ``origin_id``.
+        origin_id: its frame pose (written as the identity when it has a stamp).
+        stamps: ``{pose id: timestamp (s)}``: the node gives each joined submap's end pose the
+            submap's message stamp. Poses without one (the first pose, a pose-graph chunk's inner
+            poses, poses of a loaded map) are left out.
+
+    Returns:
+        The number of poses written.
+
+    Raises:
+        InvalidMapError: the map is not in the frame of ``origin_id``.
+    """
+    check_origin_frame(local_map, origin_id)
+    ids = [pid for pid in stamps if pid == origin_id or local_map.has_pose(pid)]
+    ids.sort(key=lambda pid: (stamps[pid], pid))
+    poses = np.array([local_map.pose(pid) for pid in ids]).reshape(len(ids), pose_size(local_map.dim))
+    write_tum(path, local_map.dim, [stamps[pid] for pid in ids], poses)
+    return len(ids)
 
 
 def write_feature_result(out_dir: Path, feature_map: FeatureMap) -> None:

@@ -19,6 +19,7 @@ from typing import Any
 from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.core.limits import LIMIT_NAMES, NODE_LIMITS, InputLimits
 from linear_slam_ros.joiner.registry import methods
+from linear_slam_ros.joiner.robots import robot_slots
 from linear_slam_ros.joiner.strategies.sequential import SEQUENTIAL_MAX_SCALARS
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 
@@ -120,6 +121,18 @@ class JoinerConfig:
         "chi-square gate: probability of the NIS quantile a submap's common variables must pass before joining "
         "(failing variables are split off, counted as 'gated'); 0 turns the gate off", bounds=(0.0, 0.999999999),
     )
+    robots: tuple[str, ...] = _param(
+        (),
+        "robot namespaces: with a list, the node subscribes to <robot>/local_map and <robot>/pose_graph for each, "
+        "keeps each robot's sequence numbers and pose ids apart (robot k's pose i is k * 2^32 + i in the map; "
+        "feature ids are shared) and publishes <robot>/pose; empty: one robot on local_map and pose_graph",
+        read_only=True,
+    )
+    refine: bool = _param(
+        False,
+        "run Gauss-Newton on eq. (7) over every joined submap in a background process, warm-started from its previous "
+        "solution and the linear map, and publish global_map_refined (map_type as-is only)", read_only=True,
+    )
     # Input limits (linear_slam_ros.core.limits.InputLimits, same names): a submap beyond one is rejected.
     max_state_scalars: int = _param(
         NODE_LIMITS.max_state_scalars,
@@ -178,6 +191,11 @@ class JoinerConfig:
             if f.name in values:
                 kwargs[f.name] = _convert(f, values[f.name])
         config = cls(**kwargs)
+        robot_slots(config.robots)  # names checked: ROS name tokens, no repeats
+        if config.robots and config.refine:
+            raise ConfigError(f"parameter refine=True is not available with robots={list(config.robots)} (one robot only)")
+        if config.refine and config.map_type is not MapType.AS_IS:
+            raise ConfigError(f"parameter refine=True needs map_type='as-is', not {config.map_type.value!r}")
         allowed = methods(config.map_type, online_only=online)
         if config.mode not in allowed:
             raise ConfigError(
@@ -198,6 +216,10 @@ def _convert(f: dataclasses.Field[Any], value: Any) -> Any:
         except ValueError:
             allowed = [e.value for e in enum_type]
             raise ConfigError(f"parameter {f.name}={value!r} is not valid: allowed values are {allowed}") from None
+    if isinstance(default, tuple):  # a string array
+        if not isinstance(value, list | tuple) or not all(isinstance(v, str) for v in value):
+            raise ConfigError(f"parameter {f.name}={value!r} must be a list of strings")
+        return tuple(value)
     accepted = (int, float) if isinstance(default, float) else type(default)  # an int is a valid float
     if isinstance(value, bool) != isinstance(default, bool) or not isinstance(value, accepted):
         raise ConfigError(f"parameter {f.name}={value!r} must be of type {type(default).__name__}")
@@ -214,13 +236,13 @@ class ParameterDeclaration:
 
     Attributes:
         name: parameter name.
-        default: default value, as a ROS parameter value (enums as strings).
+        default: default value, as a ROS parameter value (enums as strings, string arrays as lists).
         spec: description, read-only flag and range.
         choices: allowed string values of an enum parameter (empty otherwise).
     """
 
     name: str
-    default: bool | int | float | str
+    default: bool | int | float | str | list[str]
     spec: ParamSpec
     choices: tuple[str, ...] = ()
 
@@ -234,5 +256,7 @@ def parameter_declarations() -> tuple[ParameterDeclaration, ...]:
         if isinstance(default, enum.Enum):
             choices = tuple(str(e.value) for e in type(default))
             default = default.value
+        elif isinstance(default, tuple):  # a string array: a list, as ROS gives it
+            default = list(default)
         out.append(ParameterDeclaration(f.name, default, f.metadata["param"], choices))
     return tuple(out)

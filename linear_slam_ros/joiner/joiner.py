@@ -15,17 +15,33 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
-from linear_slam_ros.core.errors import ConfigError, LinearSlamError
+from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
+from linear_slam_ros.core.frames import estimate_in_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.joiner.config import OutputFrame
+from linear_slam_ros.joiner.islands import (
+    MAIN_ISLAND,
+    Chain,
+    IslandCache,
+    IslandSummary,
+    Stream,
+    collapse_frozen,
+    island_result,
+    link_islands,
+    route,
+    summarize,
+)
 from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
-from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.gate import GateResult, gate_submap
 
 logger = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -35,57 +51,171 @@ class JoinerState:
     Attributes:
         method: joining method (with ``map_type``, the registry key of the strategy).
         map_type: ``as-is`` or ``feature-only``.
-        joined: the strategy's own state (see :meth:`strategy`).
-        first_pose_id: frame pose of the first joined submap (``map_frame`` of the outputs).
-        n_joined: submaps joined.
-        next_seq: sequence number expected next (``None`` before the first submap).
-        last_seq: sequence number of the last joined submap.
+        chains: the chains of submaps (:class:`~linear_slam_ros.joiner.islands.Chain`), oldest
+            first; ``chains[0]`` holds the first submap and its island is the main island.
+        streams: the sequence position of each robot's stream (the single robot's is ``""``).
+        n_joined: submaps joined, in all chains.
+        defer_above: the strategy's deferral setting for new chains (see :meth:`JoinStrategy.defer`).
+        dim: 2 or 3, set by the first submap (``None`` before).
     """
 
     method: JoinMethod
     map_type: MapType
-    joined: Any
-    first_pose_id: int | None = None
+    chains: tuple[Chain, ...] = ()
+    streams: tuple[Stream, ...] = ()
     n_joined: int = 0
-    next_seq: int | None = None
-    last_seq: int | None = None
+    defer_above: int | None = None
+    dim: int | None = None
 
     @property
     def strategy(self) -> AnyStrategy:
         """The joining strategy of this state."""
         return get_strategy(self.method, self.map_type)
 
+    @property
+    def joined(self) -> Any:
+        """The strategy state of the first chain (an empty one before the first submap)."""
+        if self.chains:
+            return self.chains[0].joined
+        strategy = self.strategy
+        return strategy.defer(strategy.empty(), self.defer_above)
+
+    @property
+    def first_pose_id(self) -> int | None:
+        """Frame pose of the first joined submap (``map_frame`` of the outputs)."""
+        return self.chains[0].first_pose_id if self.chains else None
+
+    def stream(self, robot: str = "") -> Stream:
+        """Return the sequence position of ``robot``'s stream."""
+        for s in self.streams:
+            if s.robot == robot:
+                return s
+        return Stream(robot)
+
+    @property
+    def next_seq(self) -> int | None:
+        """Sequence number expected next from the single robot (``None`` before its first submap)."""
+        return self.stream().next_seq
+
+    @property
+    def last_seq(self) -> int | None:
+        """Sequence number of the single robot's last joined submap."""
+        return self.stream().last_seq
+
+    def with_stream(self, robot: str, **changes: Any) -> JoinerState:
+        """Return the state with ``robot``'s stream position changed."""
+        stream = replace(self.stream(robot), **changes)
+        others = tuple(s for s in self.streams if s.robot != robot)
+        return replace(self, streams=tuple(sorted((*others, stream), key=lambda s: s.robot)))
+
+    def in_main_island(self, robot: str = "") -> bool:
+        """Whether ``robot``'s newest submap is in the main island (``True`` before any)."""
+        chain = self.stream(robot).chain
+        return chain < 0 or self.chains[chain].island == MAIN_ISLAND
+
+    @property
+    def islands(self) -> list[IslandSummary]:
+        """The islands: the main one first, then the others, largest first."""
+        return summarize(self.chains)
+
 
 def new_state(method: JoinMethod, map_type: MapType = MapType.AS_IS) -> JoinerState:
     """Return the empty state of a joiner."""
-    return JoinerState(method, map_type, get_strategy(method, map_type).empty())
+    return JoinerState(method, map_type)
 
 
-def join_step(state: JoinerState, submap: LocalMap, seq: int) -> JoinerState:
+CACHE = IslandCache()
+"""Results and key sets of chains and islands (a cache of functions of state values)."""
+
+
+def join_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -> JoinerState:
     """Join one submap: a pure function of ``(state, submap)``.
+
+    The submap continues the chain whose end pose it starts from (its robot's first). Else, when
+    a gap in its robot's sequence numbers precedes it (a lost submap, a restart, a robot's first
+    submap), it starts a new chain in a new island (pose maps only); without a gap it is rejected:
+    a submap that should continue the map and does not is an error of its sender. Islands it
+    links are relabelled (:func:`~linear_slam_ros.joiner.islands.link_islands`).
 
     Raises:
         LinearSlamError: the submap cannot be joined (the state is unchanged).
     """
-    joined = state.strategy.step(state.joined, submap)
-    first = state.first_pose_id if state.first_pose_id is not None else submap.frame_id
-    return replace(state, joined=joined, first_pose_id=first, n_joined=state.n_joined + 1, next_seq=seq + 1, last_seq=seq)
+    strategy = state.strategy
+    if state.dim is not None and submap.dim != state.dim:  # checked first: a new island must not differ either
+        raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {state.dim}D")
+    stream = state.stream(robot)
+    chains = list(state.chains)
+    stamp = state.n_joined + 1
+    end = submap.end_id
+    target = -1
+    error: LinearSlamError | None = None
+    islands = strategy.result_type is LocalMap and strategy.online  # pose maps chain; feature-only maps share features
+    candidates = route(chains, submap, robot, stream.chain, strict=False) if islands else list(range(len(chains)))[:1]
+    for i in candidates:
+        c = chains[i]
+        try:
+            joined = strategy.step(c.joined, submap)
+        except FrameError as exc:
+            error = exc
+            continue
+        chains[i] = Chain(joined, c.robot, c.first_pose_id, end if end is not None else c.end_id, c.n_joined + 1,
+                          c.island, stamp)
+        target = i
+        break
+    if target < 0:
+        after_gap = stream.last_seq is None or seq > stream.last_seq + 1
+        if chains and (not islands or not after_gap):
+            why = (
+                f"{strategy.map_type.value!r} {strategy.method.value!r} maps cannot start islands" if not islands
+                else f"it follows seq {stream.last_seq} without a gap, so it should continue the map (only a submap "
+                "after a gap in its robot's sequence numbers may start an island)"
+            )
+            raise FrameError(f"{error}; {why}" if error is not None else
+                             f"submap {submap.name!r} (frame pose {submap.frame_id}) continues no part of the map: {why}")
+        joined = strategy.step(strategy.defer(strategy.empty(), state.defer_above), submap)
+        target = len(chains)
+        chains.append(Chain(joined, robot, submap.frame_id, end, 1, target, stamp))
+        if target:
+            logger.warning(
+                "submap seq %d (%r, robot %r) starts island %d: its frame pose %d is not the end of any part of the "
+                "map (a submap was lost, or the stream restarted); it joins the others when they share a pose or "
+                "enough features", seq, submap.name, robot, target, submap.frame_id,
+            )
+    streams = state.streams
+    if islands and len(chains) > 1:
+        labels = [c.island for c in chains]
+        chains = link_islands(chains, target, submap, strategy.result, CACHE)
+        if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
+            active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
+            chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
+            target = where[target]
+            streams = tuple(replace(s, chain=where[s.chain]) if s.chain >= 0 else s for s in streams)
+    joined_state = replace(state, chains=tuple(chains), streams=streams, n_joined=stamp, dim=submap.dim)
+    return joined_state.with_stream(robot, next_seq=seq + 1, last_seq=seq, chain=target)
 
 
-def gate_step(state: JoinerState, submap: LocalMap, probability: float) -> GateResult:
+def gate_chain(state: JoinerState, submap: LocalMap, robot: str = "") -> Any | None:
+    """Return the strategy state of the chain ``submap`` would continue (``None``: it starts an island)."""
+    candidates = route(state.chains, submap, robot, state.stream(robot).chain)
+    return state.chains[candidates[0]].joined if candidates else None
+
+
+def gate_step(state: JoinerState, submap: LocalMap, probability: float, robot: str = "") -> GateResult:
     """Test a submap against the state's global map by the χ² gate: a pure function of ``(state, submap)``.
 
     The NIS of the variables the submap shares with the map (after bringing both into one frame)
     against ``chi2.ppf(probability, dof)``; failing variables are split off, or the submap is gated
     whole (:func:`~linear_slam_ros.joining.gate.gate_submap`). Strategies that cannot gate
-    (``marginal`` returns ``None``) pass everything.
+    (``marginal`` returns ``None``) pass everything. The map compared with is the chain the submap
+    continues (:func:`gate_chain`); a submap that starts an island passes.
 
     Raises:
         SolverError: a covariance is not positive definite.
     """
-    if state.n_joined == 0:
+    joined = gate_chain(state, submap, robot) if state.n_joined else None
+    if joined is None:  # the first submap, or the first of an island: nothing to compare with
         return GateResult(probability, 0.0, 0, float("inf"), submap=submap)
-    strategy, joined = state.strategy, state.joined
+    strategy = state.strategy
     return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability)
 
 
@@ -124,13 +254,55 @@ def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFr
     Pose maps are in the robocentric end-pose frame, or in the first pose's frame with
     ``output_frame`` ``first_pose``; feature-only maps in their feature frame.
     """
+    result = island_map(state, MAIN_ISLAND)
+    if result is None or OutputFrame(output_frame) is OutputFrame.END_POSE or state.first_pose_id is None:
+        return result
+    return state.strategy.express(result, state.first_pose_id)
+
+
+def island_map(state: JoinerState, label: int) -> Any | None:
+    """Return the joined map of island ``label`` in its newest end pose's frame (``None``: no such island).
+
+    The main island (``label`` :data:`~linear_slam_ros.joiner.islands.MAIN_ISLAND`) is
+    :func:`global_result`'s map; the others are in frames of their own.
+    """
     if state.n_joined == 0:
         return None
     strategy = state.strategy
-    result = strategy.result(state.joined)
-    if result is None or OutputFrame(output_frame) is OutputFrame.END_POSE or state.first_pose_id is None:
-        return result
-    return strategy.express(result, state.first_pose_id)
+    if len(state.chains) == 1:  # no islands: nothing to cache
+        return strategy.result(state.joined) if label == MAIN_ISLAND else None
+    return island_result(state.chains, label, strategy.result, CACHE)
+
+
+def robot_poses(state: JoinerState, joined: LocalMap) -> dict[str, FloatArray]:
+    """Return each robot's newest end pose in the first pose's frame, from the main island's map ``joined``.
+
+    Robots whose newest submap is in another island have none.
+    """
+    first = state.first_pose_id
+    if first is None:
+        return {}
+    in_map = joined if joined.frame_id == first else estimate_in_frame(joined, first)
+    out: dict[str, FloatArray] = {}
+    for stream in state.streams:
+        end = state.chains[stream.chain].end_id if stream.chain >= 0 else None
+        if end is None or not state.in_main_island(stream.robot):
+            continue
+        if end == first or in_map.has_pose(end):
+            out[stream.robot] = in_map.pose(end)
+    return out
+
+
+def current_pose(state: JoinerState, robot: str = "") -> PoseEstimate | None:
+    """Return ``robot``'s newest end pose in ``map_frame`` (the first pose's frame), cheaply.
+
+    ``None`` when it is not known cheaply: before the first submap, when the robot's newest
+    submap is in another chain than the first one (its pose in ``map_frame`` then comes with the
+    joined map), or when the strategy has no cheap current pose.
+    """
+    if state.first_pose_id is None or state.stream(robot).chain != 0:
+        return None
+    return state.strategy.current_pose(state.joined, state.first_pose_id)
 
 
 @dataclass(frozen=True)
@@ -140,9 +312,10 @@ class SavedJoiner:
     Attributes:
         state: the joiner state (map, sequence position, counts).
         rejected: ``(reason, count)`` of the rejections so far.
-        pending: ``(seq, submap)`` of the early submaps waiting in the reorder buffer.
+        pending: ``(seq, submap)`` of the single robot's early submaps waiting in the reorder buffer.
         n_skipped: submaps skipped because their sequence number was already handled.
         journal_records: how many records of the node's journal this value includes (0 offline).
+        robot_pending: ``(robot, seq, submap)`` of the other robots' early submaps.
     """
 
     state: JoinerState
@@ -150,6 +323,7 @@ class SavedJoiner:
     pending: tuple[tuple[int, LocalMap], ...] = ()
     n_skipped: int = 0
     journal_records: int = 0
+    robot_pending: tuple[tuple[str, int, LocalMap], ...] = ()
 
 
 FIRST_SEQ = 1
@@ -221,19 +395,23 @@ class Joiner:
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
     n_skipped: int = 0
-    _pending: dict[int, LocalMap] = field(default_factory=dict)
+    _pending: collections.defaultdict[str, dict[int, LocalMap]] = field(
+        default_factory=lambda: collections.defaultdict(dict)
+    )
     _pending_bytes: int = 0
-    _progress_at: float = field(default=0.0)
+    _progress_at: collections.defaultdict[str, float] = field(default_factory=lambda: collections.defaultdict(float))
 
     def __post_init__(self) -> None:
         if self.gate_probability is not None and not 0.0 <= self.gate_probability < 1.0:
             raise ConfigError(f"gate_probability={self.gate_probability!r} must be in [0, 1) (0 or None: no gate)")
         self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
-        self._progress_at = self.clock()
+        self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
 
     def _scheduled(self, state: JoinerState) -> JoinerState:
         """Return ``state`` set to defer its large joins as this joiner is configured to."""
-        return replace(state, joined=state.strategy.defer(state.joined, self.defer_above))
+        strategy = state.strategy
+        chains = tuple(replace(c, joined=strategy.defer(c.joined, self.defer_above)) for c in state.chains)
+        return replace(state, chains=chains, defer_above=self.defer_above)
 
     def reset(self) -> None:
         """Forget every submap, count and buffered message (queued background joins included)."""
@@ -245,14 +423,19 @@ class Joiner:
         self.gated.clear()
         self._pending.clear()
         self._pending_bytes = 0
-        self._progress_at = self.clock()
+        self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
         self.n_skipped = 0
 
     def save(self, journal_records: int = 0) -> SavedJoiner:
         """Return the joiner's state, counts and reorder buffer as one immutable value."""
+        pending = tuple(sorted((seq, submap) for seq, submap in self._pending.get("", {}).items()))
+        robots = tuple(
+            (robot, seq, submap)
+            for robot in sorted(self._pending) if robot
+            for seq, submap in sorted(self._pending[robot].items())
+        )
         return SavedJoiner(
-            self.state, tuple(sorted(self.rejected.items())), tuple(sorted(self._pending.items())), self.n_skipped,
-            journal_records,
+            self.state, tuple(sorted(self.rejected.items())), pending, self.n_skipped, journal_records, robots
         )
 
     def restore(self, saved: SavedJoiner) -> None:
@@ -271,9 +454,13 @@ class Joiner:
             self.worker.clear()
         self.state = self._scheduled(saved.state)
         self.rejected = collections.Counter(dict(saved.rejected))
-        self._pending = dict(saved.pending)
-        self._pending_bytes = sum(_nbytes(m) for m in self._pending.values())
-        self._progress_at = self.clock()
+        self._pending = collections.defaultdict(dict)
+        for seq, submap in saved.pending:
+            self._pending[""][seq] = submap
+        for robot, seq, submap in saved.robot_pending:
+            self._pending[robot][seq] = submap
+        self._pending_bytes = sum(_nbytes(m) for waiting in self._pending.values() for m in waiting.values())
+        self._progress_at = collections.defaultdict(self.clock, {r: self.clock() for r in ("", *self._pending)})
         self.n_skipped = saved.n_skipped
         self.join_seconds.clear()
 
@@ -290,113 +477,144 @@ class Joiner:
 
     @property
     def expected(self) -> int:
-        """The sequence number joined next."""
-        return self.state.next_seq if self.state.next_seq is not None else FIRST_SEQ
+        """The sequence number joined next (of the single robot; :meth:`expected_of` for others)."""
+        return self.expected_of("")
 
-    def already_handled(self, seq: int) -> bool:
+    def expected_of(self, robot: str) -> int:
+        """The sequence number of ``robot``'s stream joined next."""
+        next_seq = self.state.stream(robot).next_seq
+        return next_seq if next_seq is not None else FIRST_SEQ
+
+    def already_handled(self, seq: int, robot: str = "") -> bool:
         """Return whether :meth:`offer` would skip ``seq`` as already handled (joined, skipped or waiting)."""
-        return seq < self.expected or seq in self._pending
+        return seq < self.expected_of(robot) or seq in self._pending.get(robot, {})
 
-    def offer(self, submap: LocalMap, seq: int) -> list[int]:
-        """Take a decoded submap; join it (and any buffered successors) when its turn comes.
+    @staticmethod
+    def _who(seq: int, robot: str) -> str:
+        return f"submap seq {seq}" if not robot else f"robot {robot!r} submap seq {seq}"
+
+    def offer(self, submap: LocalMap, seq: int, robot: str = "") -> list[int]:
+        """Take a decoded submap of ``robot``'s stream; join it (and any buffered successors) when its turn comes.
+
+        Each robot's stream has its own sequence numbers, reorder buffer and gaps; all join one map.
 
         Returns:
-            Sequence numbers joined by this call, in order.
+            Sequence numbers joined by this call, in order (of ``robot``'s stream).
         """
         if seq < FIRST_SEQ:
-            self.reject("seq_out_of_range", f"submap seq {seq} rejected: sequence numbers start at {FIRST_SEQ}")
+            self.reject("seq_out_of_range", f"{self._who(seq, robot)} rejected: sequence numbers start at {FIRST_SEQ}")
             return []
-        if self.already_handled(seq):
+        if self.already_handled(seq, robot):
             self.n_skipped += 1
-            logger.debug("submap seq %d was already handled (next expected: %d): skipped", seq, self.expected)
+            logger.debug("%s was already handled (next expected: %d): skipped", self._who(seq, robot),
+                         self.expected_of(robot))
             return []
-        if seq > self.expected:
-            self._pending[seq] = submap
+        _ = self._progress_at[robot]  # a new robot's stream starts its clock now
+        if seq > self.expected_of(robot):
+            self._pending[robot][seq] = submap
             self._pending_bytes += _nbytes(submap)
-            return self._relieve()
-        return self._join(submap, seq) + self._drain()
+            return self._relieve(robot)
+        return self._join(submap, seq, robot) + self._drain(robot)
 
     def expire(self) -> list[int]:
-        """Skip a gap that has held the stream up for ``reorder_timeout`` seconds (call it periodically).
+        """Skip gaps that have held a stream up for ``reorder_timeout`` seconds (call it periodically).
 
         Returns:
-            Sequence numbers joined.
+            Sequence numbers joined (of all robots).
         """
-        if self._pending and self.clock() - self._progress_at >= self.reorder_timeout:
-            return self._skip_gap(f"no progress for {self.clock() - self._progress_at:.1f} s")
-        return []
+        joined: list[int] = []
+        for robot in sorted(self._pending):
+            idle = self.clock() - self._progress_at[robot]
+            if self._pending[robot] and idle >= self.reorder_timeout:
+                joined += self._skip_gap(robot, f"no progress for {idle:.1f} s")
+        return joined
 
-    def _credible(self, seq: int) -> bool:
+    def flush(self) -> list[int]:
+        """Skip every gap now: the streams are complete (an offline run's end), what is missing never comes.
+
+        Returns:
+            Sequence numbers joined (of all robots).
+        """
+        joined: list[int] = []
+        for robot in sorted(self._pending):
+            while self._pending[robot]:  # each skip joins (or rejects) at least the lowest waiting submap
+                joined += self._skip_gap(robot, "the stream has ended", force=True)
+        return joined
+
+    def _credible(self, seq: int, robot: str) -> bool:
         """Whether the stream may move on to waiting ``seq``: near, or the first of two consecutive numbers."""
-        return seq - self.expected <= self.reorder_window or seq + 1 in self._pending
+        return seq - self.expected_of(robot) <= self.reorder_window or seq + 1 in self._pending[robot]
 
-    def _relieve(self) -> list[int]:
+    def _relieve(self, robot: str) -> list[int]:
         """Keep the buffer within its count and byte bounds: skip the gap, else drop the farthest submap."""
         joined: list[int] = []
-        while len(self._pending) > self.reorder_window or self._pending_bytes > self.reorder_max_bytes:
-            if self._credible(min(self._pending)):
-                joined += self._skip_gap(
-                    f"the reorder buffer holds {len(self._pending)} submaps, {self._pending_bytes} bytes"
-                )
+        waiting = self._pending[robot]
+        while len(waiting) > self.reorder_window or self._pending_bytes > self.reorder_max_bytes:
+            if self._credible(min(waiting), robot):
+                joined += self._skip_gap(robot, f"the reorder buffer holds {len(waiting)} submaps, {self._pending_bytes} bytes")
                 continue
-            far = max(self._pending)
-            self._pending_bytes -= _nbytes(self._pending.pop(far))
+            far = max(waiting)
+            self._pending_bytes -= _nbytes(waiting.pop(far))
             self.reject(
                 "reorder_buffer_full",
-                f"submap seq {far} dropped: it waits for seq {self.expected} and the reorder buffer is full "
-                f"({self.reorder_window} submaps, {self.reorder_max_bytes} bytes)",
+                f"{self._who(far, robot)} dropped: it waits for seq {self.expected_of(robot)} and the reorder buffer "
+                f"is full ({self.reorder_window} submaps, {self.reorder_max_bytes} bytes)",
             )
         return joined
 
-    def _skip_gap(self, why: str) -> list[int]:
+    def _skip_gap(self, robot: str, why: str, force: bool = False) -> list[int]:
         """Move the stream to the lowest credible waiting submap, if there is one, and join from there."""
-        start = min(self._pending)
-        if not self._credible(start):
+        start = min(self._pending[robot])
+        if not force and not self._credible(start, robot):
             return []
-        self.reject("gap", f"submaps seq {self.expected}..{start - 1} never arrived or were rejected ({why}): skipped")
-        self.state = replace(self.state, next_seq=start)
-        self._progress_at = self.clock()
-        return self._drain()
+        gap = f"seq {self.expected_of(robot)}..{start - 1}"
+        whose = f" of robot {robot!r}" if robot else ""
+        self.reject("gap", f"submaps {gap}{whose} never arrived or were rejected ({why}): skipped")
+        self.state = self.state.with_stream(robot, next_seq=start)
+        self._progress_at[robot] = self.clock()
+        return self._drain(robot)
 
-    def _drain(self) -> list[int]:
+    def _drain(self, robot: str) -> list[int]:
         joined: list[int] = []
-        while self.expected in self._pending:
-            seq = self.expected
-            submap = self._pending.pop(seq)
+        waiting = self._pending[robot]
+        while self.expected_of(robot) in waiting:
+            seq = self.expected_of(robot)
+            submap = waiting.pop(seq)
             self._pending_bytes -= _nbytes(submap)
-            done = self._join(submap, seq)
-            if not done and self.expected == seq:  # rejected: its number stays open for a valid one
+            done = self._join(submap, seq, robot)
+            if not done and self.expected_of(robot) == seq:  # rejected: its number stays open for a valid one
                 break
             joined += done
         return joined
 
-    def _join(self, submap: LocalMap, seq: int) -> list[int]:
+    def _join(self, submap: LocalMap, seq: int, robot: str) -> list[int]:
         if submap.n_vars == 0:  # valid, and adds nothing: its number is used, the map unchanged
-            logger.info("submap seq %d holds no variable: nothing to join", seq)
-            self.state = replace(self.state, next_seq=seq + 1, last_seq=seq)
-            self._progress_at = self.clock()
+            logger.info("%s holds no variable: nothing to join", self._who(seq, robot))
+            self.state = self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq)
+            self._progress_at[robot] = self.clock()
             return []
         t0 = time.perf_counter()
         try:
             if self.gate_probability:
-                gated = self._gate(submap, seq)
+                gated = self._gate(submap, seq, robot)
                 if gated is None:
                     return []
                 submap = gated
-            self.state = join_step(self.state, submap, seq)
+            self.state = join_step(self.state, submap, seq, robot)
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
-            self.reject(type(exc).__name__, f"submap seq {seq} rejected: {exc}")
+            self.reject(type(exc).__name__, f"{self._who(seq, robot)} rejected: {exc}")
             return []
         if self.worker is not None:
-            self.worker.submit(self.state.strategy.pending(self.state.joined))
+            chain = self.state.chains[self.state.stream(robot).chain]
+            self.worker.submit(self.state.strategy.pending(chain.joined))
         self.join_seconds.append(time.perf_counter() - t0)
-        self._progress_at = self.clock()
+        self._progress_at[robot] = self.clock()
         return [seq]
 
-    def _gate(self, submap: LocalMap, seq: int) -> LocalMap | None:
+    def _gate(self, submap: LocalMap, seq: int, robot: str) -> LocalMap | None:
         """Run the gate; return what to join (``None``: nothing left, its number used up)."""
         assert self.gate_probability is not None
-        result = gate_step(self.state, submap, self.gate_probability)
+        result = gate_step(self.state, submap, self.gate_probability, robot)
         if result.passed:
             return submap
         variables = result.split if not result.rejected else result.worst
@@ -405,14 +623,14 @@ class Joiner:
             result.dof, result.threshold, result.rejected,
         )
         self.gated.append(record)
-        self.reject("gated", result.message(f"submap seq {seq} ({submap.name!r})"))
+        self.reject("gated", result.message(self._who(seq, robot) + f" ({submap.name!r})"))
         if result.submap is None:  # nothing left to join: its number is used, the map unchanged
-            self.state = replace(self.state, next_seq=seq + 1, last_seq=seq)
-            self._progress_at = self.clock()
+            self.state = self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq)
+            self._progress_at[robot] = self.clock()
         return result.submap
 
     def stats(self) -> dict[str, float]:
-        """Return counts and join-latency figures (ms) for the global map message."""
+        """Return counts, join-latency figures (ms) and the number of islands for the global map message."""
         lat = latency(self.join_seconds)
         return {
             "n_joined": float(self.state.n_joined),
@@ -422,4 +640,5 @@ class Joiner:
             "join_ms_p99": lat.p99_ms,
             "join_ms_max": lat.max_ms,
             "join_seconds_total": float(sum(self.join_seconds)),
+            "n_islands": float(len(self.state.islands)),
         }

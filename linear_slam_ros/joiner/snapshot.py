@@ -41,14 +41,16 @@ from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.feature_only.online import FeatureJoinState
 from linear_slam_ros.feature_only.precondition import Group
 from linear_slam_ros.joiner.config import OutputFrame
+from linear_slam_ros.joiner.islands import Chain, Stream
 from linear_slam_ros.joiner.joiner import JoinerState, SavedJoiner
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState
 from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 1
-"""Bumped whenever the tree of a state changes; a file of another version is refused."""
+FORMAT_VERSION = 2
+"""Bumped whenever the tree of a state changes; a file of another version is refused (2: chains and
+streams, for islands and several robots)."""
 
 
 class SnapshotError(LinearSlamError):
@@ -58,6 +60,8 @@ class SnapshotError(LinearSlamError):
 CLASSES: dict[str, Callable[..., Any]] = {
     "SavedJoiner": SavedJoiner,
     "JoinerState": JoinerState,
+    "Chain": Chain,
+    "Stream": Stream,
     "SequentialState": SequentialState,
     "OnlineDCState": OnlineDCState,
     "FeatureJoinState": FeatureJoinState,

@@ -102,6 +102,15 @@ class JoinStrategy(Protocol[StateT, ResultT]):
         """Return ``result`` in the frame of pose ``pose_id`` (unchanged for maps without pose frames)."""
         ...
 
+    def seed(self, joined: ResultT, n_submaps: int) -> StateT:
+        """Return the state of a map already joined from ``n_submaps`` submaps (islands joined into one).
+
+        Raises:
+            NotImplementedError: the strategy cannot start from a joined map (only strategies of
+                pose maps that join online can: the ones that have islands).
+        """
+        ...
+
     def defer(self, state: StateT, above_scalars: int | None) -> StateT:
         """Return ``state`` set to defer its joins of more than ``above_scalars`` state scalars.
 
@@ -175,6 +184,10 @@ class FoldStrategy(Generic[StateT, ResultT]):
     def defer(self, state: StateT, above_scalars: int | None) -> StateT:
         """Return ``state`` (nothing to defer; see :meth:`JoinStrategy.defer`)."""
         return state
+
+    def seed(self, joined: ResultT, n_submaps: int) -> StateT:
+        """Raise: this strategy cannot start from a joined map (see :meth:`JoinStrategy.seed`)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot start from a joined map")
 
     def pending(self, state: StateT) -> list[Deferred]:
         """Return no deferred joins."""

@@ -222,7 +222,8 @@ class OnlineDCState:
     Attributes:
         stack: joined maps, oldest first, each in the frame of its seam (or its own start);
             ``counts[i]`` submaps make up ``stack[i]``, and counts strictly decrease along the
-            stack (each a power of two). An entry may be a :class:`Deferred` join.
+            stack (each a power of two, except a first entry seeded from a map joined elsewhere:
+            it keeps its count, and merges when an entry of that count forms). An entry may be a :class:`Deferred` join.
         counts: number of submaps in each stack entry.
         n_joined: total number of submaps joined.
         defer_above: joins of entries with more state scalars than this together are deferred

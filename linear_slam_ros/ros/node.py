@@ -12,6 +12,7 @@ import logging
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ import numpy as np
 import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -36,20 +37,25 @@ from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.core.timing import latency, peak_rss_mb
-from linear_slam_ros.io.results import write_map
+from linear_slam_ros.io.results import write_map, write_tum_stamped
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
-from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, global_result
+from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, current_pose, global_result, robot_poses
 from linear_slam_ros.joiner.registry import get_strategy
+from linear_slam_ros.joiner.robots import qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
+from linear_slam_ros.refinement.online import GateDecision, LinearEstimate, Submission
+from linear_slam_ros.refinement.worker import RefineWorker, SinkSpec
 from linear_slam_ros.ros.journal import JournalError
 from linear_slam_ros.ros.persistence import StateStore
+from linear_slam_ros.ros.pose_output import PoseTracker
 from linear_slam_ros.ros.qos import inbound_qos, latched_qos
+from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_empty_global, encode_global
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import empty_views, map_views, pose_stamped_msg
+from msg_adapters.views import empty_views, map_views, pose_with_covariance_msg, transform_msg
 
 NODE_NAME = "joiner"
 PUBLISH_DUTY = 0.5
@@ -98,11 +104,17 @@ class JoinerNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
-        for decl in parameter_declarations():
-            self.declare_parameter(decl.name, decl.default, _descriptor(decl))
+        for decl in (*parameter_declarations(), *TF_PARAMETERS):
+            # a string array's default is empty: its type cannot be inferred from it
+            default = Parameter.Type.STRING_ARRAY if isinstance(decl.default, list) else decl.default
+            self.declare_parameter(decl.name, default, _descriptor(decl))
         # Raises ConfigError, naming the parameter, its value and the allowed values: main() exits with 2.
-        config = JoinerConfig.from_mapping({d.name: self.get_parameter(d.name).value for d in parameter_declarations()})
+        config = JoinerConfig.from_mapping({
+            d.name: self.get_parameter_or(d.name, Parameter(d.name, value=d.default)).value for d in parameter_declarations()
+        })
         self.config = config
+        # robots: each robot's slot keeps its pose ids apart (README, "Islands and several robots")
+        self._slots = robot_slots(config.robots) if config.robots else {"": 0}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         tune_allocator()
         set_blas_threads(get_strategy(config.mode, config.map_type).blas_threads)
@@ -136,6 +148,8 @@ class JoinerNode(Node):
         self._pose_seq = 0  # newest submap seq whose pose was published
         self._data_stamps: dict[int, Stamp] = {}  # message stamps of submaps not joined yet
         self._output_stamp: Stamp | None = None  # the newest joined submap's: the outputs' stamp
+        self._poses = PoseTracker()  # the newest pose's exact covariance and the TUM stamps
+        self._deferred_pose: tuple[Any, int, int, Time] | None = None  # a global map whose exact covariance is not due yet
         self._summary_counts: tuple[float, ...] | None = None  # what the last summary line said
         # per submap with timing_file: [arrival (monotonic s), join ms, pose freshness ms, map freshness ms]
         self._timeline: dict[int, list[float]] | None = {} if config.timing_file else None
@@ -148,22 +162,40 @@ class JoinerNode(Node):
         # the same in CPU time of the thread doing it, with the joins' for comparison: wall time around
         # a journal write also counts the wait for the interpreter lock at its system call
         self._cpu_seconds = {"journal": 0.0, "snapshot": 0.0, "join": 0.0}
+        # refine: joined submaps go to the refiner process (README, "Refinement"); seq -> (submap, arrival)
+        self.refiner: RefineWorker | None = None
+        self._refine_waiting: dict[int, tuple[LocalMap, float]] = {}
         self._start_state()
+        if config.refine:
+            self.refiner = RefineWorker(SinkSpec("linear_slam_ros.ros.refine_sink:make_sink", {
+                "topic": self.resolve_topic_name("global_map_refined"), "node_name": f"{self.get_name()}_refiner",
+                "output_frame": config.output_frame.value,
+            }))
+            self._refine_prior()
 
         depth = config.queue_depth
         inbound, latched = inbound_qos(depth), latched_qos()
         joining_group = MutuallyExclusiveCallbackGroup()
         output_group = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(
-            Float64MultiArray, "local_map", self._on_local_map, inbound, callback_group=joining_group, raw=True
-        )
-        self.create_subscription(
-            Float64MultiArray, "pose_graph", self._on_pose_graph, inbound, callback_group=joining_group, raw=True
-        )
+        for robot in self._slots:  # with robots: each robot's topics in its namespace
+            for base in ("local_map", "pose_graph"):
+                topic = f"{robot}/{base}" if robot else base
+                self.create_subscription(
+                    Float64MultiArray, topic, self._receiver(topic, robot), inbound, callback_group=joining_group, raw=True,
+                )
         self.pub_global = self.create_publisher(Float64MultiArray, "global_map", latched)
         self.pub_path = self.create_publisher(PathMsg, "path", latched)
         self.pub_markers = self.create_publisher(MarkerArray, "features", latched)
-        self.pub_pose = self.create_publisher(PoseStamped, "pose", latched)
+        self._pose_pubs = (  # with robots: <robot>/pose each
+            {robot: self.create_publisher(PoseWithCovarianceStamped, f"{robot}/pose", latched) for robot in self._slots}
+            if config.robots else {"": self.create_publisher(PoseWithCovarianceStamped, "pose", latched)}
+        )
+        # publish_tf: map_frame -> base_frame at the newest pose (tf2_ros where installed; README, TF)
+        self._tf_send, self._base_frame = None, str(self.get_parameter("base_frame").value)
+        if self.get_parameter("publish_tf").value:
+            self._tf_send, how = tf_sender(self)
+            log = self.get_logger().info if self._tf_send is not None else self.get_logger().warning
+            log(f"publish_tf: {how}" if self._tf_send is not None else f"publish_tf is set but no TF is published: {how}")
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=joining_group)
         self.create_timer(0.25, self._on_expire_timer, callback_group=joining_group)
@@ -201,14 +233,16 @@ class JoinerNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
-    def _on_local_map(self, raw: bytes) -> None:
-        self._receive("local_map", raw)
+    def _receiver(self, topic: str, robot: str) -> Callable[[bytes], None]:
+        """Return the subscription callback of ``robot``'s ``topic``."""
 
-    def _on_pose_graph(self, raw: bytes) -> None:
-        self._receive("pose_graph", raw)
+        def receive(raw: bytes) -> None:
+            self._receive(topic, raw, robot)
 
-    def _receive(self, topic: str, raw: bytes) -> None:
-        """Decode an inbound message, journal it (with ``state_dir``), then offer it to the joiner."""
+        return receive
+
+    def _receive(self, topic: str, raw: bytes, robot: str = "") -> None:
+        """Decode an inbound message of ``robot``, journal it (with ``state_dir``), then offer it to the joiner."""
         arrived = time.monotonic()
         self.n_received += 1
         try:
@@ -216,23 +250,27 @@ class JoinerNode(Node):
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
-        self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp)
+        submap = qualify(submap, self._slots[robot])
+        self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp, robot=robot)
 
     def _replay(self, topic: str, raw: bytes) -> None:
         """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
+        robot = topic.rpartition("/")[0]
         try:
+            if robot not in self._slots:
+                raise MessageError(f"robot {robot!r} is not in robots={list(self.config.robots)}")
             submap, seq, stamp = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
             self._journal_records += 1
             return
-        self._offer(submap, seq, self._journal_records, stamp=stamp)
+        self._offer(qualify(submap, self._slots[robot]), seq, self._journal_records, stamp=stamp, robot=robot)
 
     def _offer(
         self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None,
-        arrived: float | None = None, stamp: Stamp | None = None,
+        arrived: float | None = None, stamp: Stamp | None = None, robot: str = "",
     ) -> None:
-        """Offer a submap to the joiner; with ``journal``, append its message to the journal first.
+        """Offer a submap of ``robot`` to the joiner; with ``journal``, append its message to the journal first.
 
         The newest pose is published at once when the submap is joined (``arrived``: its arrival
         time, for the freshness figures). Outputs carry the message ``stamp`` of the newest joined
@@ -240,23 +278,29 @@ class JoinerNode(Node):
 
         Both happen under the joining lock, so a snapshot always pairs a state with the number of
         journal records it includes. A message the joiner will skip (sequence number already
-        handled) is not journaled: replaying it would add nothing.
+        handled) is not journaled: replaying it would add nothing. Records per submap are keyed by
+        :func:`_key` (the sequence number, with its robot when there are several).
         """
+        key = _key(robot, seq)
         with self._lock:
-            fresh = not self.joiner.already_handled(seq)  # else the joiner skips it
+            fresh = not self.joiner.already_handled(seq, robot)  # else the joiner skips it
             if journal is not None and self.store is not None and fresh:
                 t0, c0 = time.perf_counter(), time.thread_time()
                 record = self.store.journal.append(journal[0], journal[1], time.time_ns())  # receive time, wall clock
                 self._persist_seconds["journal"] += time.perf_counter() - t0
                 self._cpu_seconds["journal"] += time.thread_time() - c0
             c0 = time.thread_time()
+            if self.refiner is not None and fresh:
+                self._refine_waiting[seq] = (submap, arrived if arrived is not None else time.monotonic())
             if stamp is not None and fresh:
-                self._data_stamps[seq] = stamp
+                self._data_stamps[key] = stamp
             if arrived is not None and fresh:
-                self._arrived[seq] = arrived
+                self._arrived[key] = arrived
                 if self._timeline is not None:
-                    self._timeline[seq] = [arrived, np.nan, np.nan, np.nan]
-            joined = self.joiner.offer(submap, seq)
+                    self._timeline[key] = [arrived, np.nan, np.nan, np.nan]
+            if fresh:
+                self._poses.received(key, submap.end_id)
+            joined = [_key(robot, s) for s in self.joiner.offer(submap, seq, robot)]
             if self._timeline is not None and joined:
                 for s, seconds in zip(joined, self.joiner.join_seconds[-len(joined) :], strict=True):
                     if s in self._timeline:
@@ -268,19 +312,51 @@ class JoinerNode(Node):
                 self._version += 1
                 state = self.joiner.state
                 stamps = [self._data_stamps.pop(s, None) for s in joined]
+                self._poses.joined(joined, [self._seconds(s) for s in stamps])
                 if stamps[-1] is not None:
                     self._output_stamp = stamps[-1]
+                if self.refiner is not None:
+                    self._refine_submit(joined)
             self.n_offered += 1
             if self.n_offered % PRUNE_EVERY == 0:
                 self._prune(self._data_stamps, keep_joined=False)
                 self._prune(self._arrived, keep_joined=True)  # joined ones wait for their global_map
+                self._prune(self._refine_waiting, keep_joined=False)
+                waiting = dict.fromkeys(self._poses.pending_seqs)
+                self._prune(waiting, keep_joined=False)
+                self._poses.forget([s for s in self._poses.pending_seqs if s not in waiting])
         if joined and arrived is not None:  # live arrivals (not the journal's replay at start-up)
-            self._publish_pose(state, joined)
+            self._publish_pose(state, joined, robot)
         for s in joined:
             self.get_logger().debug(
                 f"joined submap seq {s}: {self.joiner.state.n_joined} joined, last join "
                 f"{self.joiner.join_seconds[-1] * 1e3:.2f} ms"
             )
+
+    def _refine_submit(self, joined: list[int]) -> None:
+        """Send just-joined submaps to the refiner, with the gate's decisions (called under the lock)."""
+        assert self.refiner is not None
+        stamp = self._stamp()
+        gated = {g.submap: g for g in self.joiner.gated[-len(joined) :]} if self.joiner.gated else {}
+        for s in joined:
+            waiting = self._refine_waiting.pop(s, None)
+            if waiting is None:
+                continue
+            g = gated.get(s)
+            decision = None if g is None else GateDecision(tuple(zip(g.variables, g.kinds, strict=True)), g.rejected)
+            self.refiner.submit(Submission(s, waiting[0], waiting[1], (stamp.sec, stamp.nanosec), decision))
+
+    def _refine_prior(self) -> None:
+        """Give the refiner the current map as its first submap (after a resume or a load): it holds the
+        submaps joined before, which the refiner never received."""
+        if self.refiner is None:
+            return
+        with self._lock:
+            state = self.joiner.state
+        prior = global_result(state, OutputFrame.FIRST_POSE) if state.n_joined else None
+        if isinstance(prior, LocalMap):
+            stamp = self._stamp()
+            self.refiner.submit(Submission(state.last_seq or 0, prior, time.monotonic(), (stamp.sec, stamp.nanosec)))
 
     def _prune(self, per_seq: dict[int, Any], keep_joined: bool) -> None:
         """Keep a per-sequence-number record bounded against hostile streams (called under the lock).
@@ -291,10 +367,14 @@ class JoinerNode(Node):
         expected number too.
         """
         window = self.joiner.reorder_window
-        expected = self.joiner.expected
-        stale = [s for s in per_seq if s > expected + 2 * window or (not keep_joined and s < expected)]
-        for seq in stale:
-            del per_seq[seq]
+        stale = []
+        for key in per_seq:
+            robot, seq = _robot_seq(key)
+            expected = self.joiner.expected_of(robot)
+            if seq > expected + 2 * window or (not keep_joined and seq < expected):
+                stale.append(key)
+        for key in stale:
+            del per_seq[key]
 
     def _on_reject(self, _reason: str, message: str) -> None:
         self.get_logger().warning(message)
@@ -317,6 +397,13 @@ class JoinerNode(Node):
             self._pose_seq = 0
             self._data_stamps.clear()
             self._output_stamp = None
+            self._poses.reset()
+            self._deferred_pose = None
+        if self.refiner is not None:  # the refiner process ends (tested) and a fresh one starts
+            with self._lock:
+                self._refine_waiting.clear()
+            code = self.refiner.reset()
+            self.get_logger().info(f"refiner process restarted (the old one's exit code {code})")
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
@@ -328,6 +415,7 @@ class JoinerNode(Node):
         with self._lock:
             state = self.joiner.state
             saved = self.joiner.save()
+            pose_stamps = dict(self._poses.pose_stamps)
         folder = Path(self.config.save_directory)
         try:
             joined = global_result(state, OutputFrame.FIRST_POSE)
@@ -335,6 +423,8 @@ class JoinerNode(Node):
                 response.success, response.message = False, "nothing to save: no submap joined yet"
                 return response
             write_map(joined, folder, state.first_pose_id)
+            if isinstance(joined, LocalMap) and state.first_pose_id is not None:  # poses.tum: the submaps' stamps
+                write_tum_stamped(folder / "poses.tum", joined, state.first_pose_id, pose_stamps)  # in the first pose's frame
             from linear_slam_ros.ros.bagio import write_messages
 
             encoded = self._encode(joined, state, self.joiner.stats())
@@ -403,8 +493,12 @@ class JoinerNode(Node):
             raise SnapshotError(f"state file {path} holds no joiner state")
         with self._lock:
             self.joiner.restore(dataclasses.replace(saved, journal_records=self._journal_records))
+            self._poses.unknown()
             self._version += 1
         self.get_logger().info(f"loaded {self.joiner.state.n_joined} submaps from {path}")
+        if self.refiner is not None:
+            self.refiner.reset()
+            self._refine_prior()
         if snapshot:
             self._snapshot()
 
@@ -443,6 +537,9 @@ class JoinerNode(Node):
             self.store = None
         if self.worker is not None:
             self.worker.stop()
+        if self.refiner is not None:
+            code = self.refiner.stop()
+            self.get_logger().info(f"refiner process stopped (exit code {code})")
         if self._timeline is not None:
             self._write_timeline(Path(self.config.timing_file))
         logging.getLogger("linear_slam_ros").removeHandler(self._log_handler)
@@ -458,16 +555,15 @@ class JoinerNode(Node):
         now = self.get_clock().now().to_msg()
         return Stamp(int(now.sec), int(now.nanosec))
 
-    def _publish_pose(self, state: JoinerState, joined: list[int]) -> None:
-        """Publish the newest pose of a state just joined, if its strategy has it cheaply."""
-        if state.first_pose_id is None:
-            return
-        current = state.strategy.current_pose(state.joined, state.first_pose_id)
+    def _publish_pose(self, state: JoinerState, joined: list[Any], robot: str = "") -> None:
+        """Publish ``robot``'s newest pose in a state just joined, if its strategy has it cheaply."""
+        current = current_pose(state, robot)  # None while the robot is off the first chain (README, "Islands")
         if current is None:
             return
         end_pose = current[1]
-        dim = 2 if end_pose.shape[0] == 3 else 3
-        self.pub_pose.publish(pose_stamped_msg(dim, end_pose, self.config.map_frame, self._stamp_msg()))
+        # the newest exact covariance, of an earlier pose: the exact one follows with the global map (README, pose)
+        cov = self._poses.fast_covariance() if not self.config.robots else None
+        self._send_pose(end_pose, cov, self._stamp_msg(), robot)
         now = time.monotonic()
         for s in joined:
             t = self._arrived.get(s)
@@ -475,18 +571,34 @@ class JoinerNode(Node):
                 self._fresh_pose.append(now - t)
                 if self._timeline is not None and s in self._timeline:
                     self._timeline[s][2] = (now - t) * 1e3
-        self._pose_seq = joined[-1]
+        self._pose_seq = state.n_joined
+
+    def _send_pose(self, pose: np.ndarray, cov: np.ndarray | None, stamp: Time, robot: str = "") -> None:
+        """Publish ``robot``'s newest pose (map frame) with its covariance on ``pose`` and, with ``publish_tf``, on ``/tf``."""
+        dim = PoseTracker.pose_dim(pose)
+        frame = self.config.map_frame
+        self._pose_pubs[robot].publish(pose_with_covariance_msg(dim, pose, cov, frame, stamp))
+        if self._tf_send is not None:
+            child = f"{robot}/{self._base_frame}" if robot else self._base_frame
+            self._tf_send(transform_msg(dim, pose, frame, child, stamp))
+
+    def _seconds(self, stamp: Stamp | None) -> float:
+        """A submap's stamp in seconds, the node's clock when it is zero or missing (the TUM trajectory's time)."""
+        if stamp is None or (stamp.sec, stamp.nanosec) == (0, 0):
+            return self.get_clock().now().nanoseconds * 1e-9
+        return stamp.sec + stamp.nanosec * 1e-9
 
     def _stamp_msg(self) -> Any:
         """:meth:`_stamp` as a ``builtin_interfaces/Time``."""
         stamp = self._stamp()
         return Time(sec=stamp.sec, nanosec=stamp.nanosec)
 
-    def _record_map_freshness(self, last_seq: int) -> None:
-        """Count the submaps up to ``last_seq`` as published in the global map now."""
+    def _record_map_freshness(self, state: JoinerState) -> None:
+        """Count the submaps ``state`` has joined as published in the global map now."""
         now = time.monotonic()
         with self._lock:
-            for s in [s for s in self._arrived if s <= last_seq]:
+            joined = [k for k in self._arrived if _robot_seq(k)[1] <= (state.stream(_robot_seq(k)[0]).last_seq or 0)]
+            for s in joined:
                 seconds = now - self._arrived.pop(s)
                 self._fresh_map.append(seconds)
                 if self._timeline is not None and s in self._timeline:
@@ -508,15 +620,18 @@ class JoinerNode(Node):
         return out
 
     def _write_timeline(self, path: Path) -> None:
-        """Write the per-submap timing CSV (``timing_file``): seq, arrival s (from the first), join and freshness ms."""
+        """Write the per-submap timing CSV (``timing_file``): seq (``robot/seq`` with robots), arrival s (from the
+        first), join and freshness ms."""
         rows = sorted(self._timeline.items()) if self._timeline else []
         start = min((r[0] for _, r in rows), default=0.0)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             with open(path, "w") as fh:
                 fh.write("seq,arrival_s,join_ms,pose_freshness_ms,map_freshness_ms\n")
-                for seq, (arrived, join_ms, pose_ms, map_ms) in rows:
-                    fh.write(f"{seq},{arrived - start:.6f},{join_ms:.4f},{pose_ms:.4f},{map_ms:.4f}\n")
+                for key, (arrived, join_ms, pose_ms, map_ms) in rows:
+                    robot, seq = _robot_seq(key)
+                    label = f"{robot}/{seq}" if robot else str(seq)
+                    fh.write(f"{label},{arrived - start:.6f},{join_ms:.4f},{pose_ms:.4f},{map_ms:.4f}\n")
         except OSError as exc:
             self.get_logger().error(f"cannot write timing_file {path}: {exc}")
 
@@ -527,6 +642,7 @@ class JoinerNode(Node):
         with self._lock:
             state, version, stats = self.joiner.state, self._version, self.joiner.stats()
         if version == self._published_version:
+            self._publish_deferred_pose()
             return
         stats.update(self.node_stats())
         try:
@@ -539,11 +655,14 @@ class JoinerNode(Node):
         self._next_publish = now + (time.monotonic() - now) / PUBLISH_DUTY
 
     def _encode(self, joined: Any, state: JoinerState, stats: dict[str, float]) -> Encoded:
-        return encode_global(joined, state.last_seq or 0, self._stamp(), state.n_joined, stats)
+        islands = [i.n_submaps for i in state.islands]
+        return encode_global(joined, state.last_seq or 0, self._stamp(), state.n_joined, stats, islands)
 
     def _publish(self, state: JoinerState, stats: dict[str, float]) -> None:
         config = self.config
         stamp = self._stamp_msg()
+        newest: tuple[np.ndarray, np.ndarray | None] | None = None
+        joined: Any = None
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
             self.pub_global.publish(to_msg(empty))
@@ -553,13 +672,48 @@ class JoinerNode(Node):
             if joined is None:  # feature-only: no group defines a feature frame yet
                 return
             self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
-            self._record_map_freshness(state.last_seq or 0)
+            self._record_map_freshness(state)
+            if self.refiner is not None and isinstance(joined, LocalMap):  # the warm start of its new variables
+                self.refiner.linear(LinearEstimate.of_map(joined, state.n_joined))
             views = map_views(joined, state.first_pose_id, config.map_frame, stamp, config.ellipse_max_state)
         if views.path is not None:
             self.pub_path.publish(views.path)
         self.pub_markers.publish(views.markers)
-        if views.pose is not None and (state.last_seq or 0) > self._pose_seq:  # not older than the arrivals' pose
-            self.pub_pose.publish(views.pose)
+        # one robot, in the main island: the map's end is where it is (README, "Islands and several robots")
+        one_robot_here = not self.config.robots and state.in_main_island()
+        if state.n_joined and isinstance(joined, LocalMap) and state.first_pose_id is not None and one_robot_here:
+            newest = self._poses.from_map(joined, state.first_pose_id)  # exact covariance when due (README, pose)
+            if newest is not None and newest[1] is not None:
+                with self._lock:
+                    self._poses.set_exact(newest[1], state.n_joined)
+            # not due: the exact covariance of this map follows when it is (_publish_deferred_pose)
+            deferred = newest is not None and not self._poses.last_exact
+            self._deferred_pose = (joined, state.first_pose_id, state.n_joined, stamp) if deferred else None
+        else:
+            self._deferred_pose = None  # no pose of this map to publish later either
+        if self.config.robots and isinstance(joined, LocalMap) and state.first_pose_id is not None:
+            self._send_robot_poses(state, joined, stamp)
+        if newest is not None and state.n_joined >= self._pose_seq:  # not older than the arrivals' pose
+            self._send_pose(newest[0], newest[1], stamp)
+
+    def _send_robot_poses(self, state: JoinerState, joined: LocalMap, stamp: Time) -> None:
+        """Publish each robot's newest pose from the global map (several robots: no covariance, README)."""
+        for robot, pose in robot_poses(state, joined).items():
+            self._send_pose(pose, None, stamp, robot)
+
+    def _publish_deferred_pose(self) -> None:
+        """Publish the exact covariance of the last global map's newest pose once it is due, if it was skipped."""
+        if self._deferred_pose is None or not self._poses.exact_due():
+            return
+        joined, first_pose_id, n_joined, stamp = self._deferred_pose
+        self._deferred_pose = None
+        newest = self._poses.from_map(joined, first_pose_id)
+        if newest is None or newest[1] is None:
+            return
+        with self._lock:
+            self._poses.set_exact(newest[1], n_joined)
+        if n_joined >= self._pose_seq:  # no arrival has published a newer pose meanwhile
+            self._send_pose(newest[0], newest[1], stamp)
 
     def _on_summary_timer(self) -> None:
         with self._lock:
@@ -591,6 +745,8 @@ class JoinerNode(Node):
             status.values.append(KeyValue(key=f"{what}_seconds_total", value=f"{seconds:g}"))
         for what, seconds in self._cpu_seconds.items():
             status.values.append(KeyValue(key=f"{what}_cpu_seconds_total", value=f"{seconds:g}"))
+        # the exact pose covariance's cost, on the output thread (README, pose)
+        status.values.append(KeyValue(key="pose_cov_exact_cpu_seconds_total", value=f"{self._poses.exact_seconds:g}"))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 
@@ -609,11 +765,21 @@ def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int,
         msg = deserialize_message(raw, Float64MultiArray)
     except Exception as exc:  # rclpy raises plain exceptions for bad CDR
         raise MessageError(f"not a serialized std_msgs/Float64MultiArray ({type(exc).__name__}: {exc})") from None
-    if topic == "pose_graph":
+    if topic.endswith("pose_graph"):
         chunk = decode_chunk(*parts(msg), limits=limits)
         return chunk_to_local_map(chunk.graph, limits), chunk.seq, chunk.stamp
     decoded = decode_map(*parts(msg), limits=limits)
     return decoded.local_map, decoded.seq, decoded.stamp
+
+
+def _key(robot: str, seq: int) -> Any:
+    """The key of a submap's per-sequence records: its number, with its robot when it has one."""
+    return (robot, seq) if robot else seq
+
+
+def _robot_seq(key: Any) -> tuple[str, int]:
+    """Inverse of :func:`_key`."""
+    return key if isinstance(key, tuple) else ("", key)
 
 
 def status_header(node: Node) -> Any:

@@ -1,9 +1,13 @@
 """Replay a rosbag2 bag into running nodes through rclpy, as ``ros2 bag play`` would.
 
-``bag_player BAG [--rate-factor 1.0] [--wait 30]``: waits until every topic has a subscriber,
-then publishes each message at its bag time divided by the rate factor (0: as fast as
-possible), reliable and keeping all (latched topics transient local), and waits for every
-message to be acknowledged before exiting.
+``bag_player BAG [--rate-factor 1.0] [--wait 30] [--clock [HZ]]``: waits until every topic has
+a subscriber, then publishes each message at its bag time divided by the rate factor (0: as fast
+as possible), reliable and keeping all (latched topics transient local), and waits for every
+message to be acknowledged before exiting. With ``--clock``, as ``ros2 bag play --clock``, it
+also publishes the bag's time as ``rosgraph_msgs/Clock`` on ``/clock`` (best effort, depth 1:
+``rclcpp::ClockQoS``): the record time of each message just before the message, and between
+messages at ``HZ`` (default 40) the bag time reached, so that nodes with ``use_sim_time`` run on
+the bag's time.
 """
 
 from __future__ import annotations
@@ -18,17 +22,34 @@ import rclpy
 from rclpy._rclpy_pybind11 import RCLError  # what a refused publish raises (rclpy re-exports no name for it)
 from rclpy.node import Node
 from rclpy.publisher import Publisher
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 from std_msgs.msg import Float64MultiArray
 
-from linear_slam_ros.core.errors import LinearSlamError
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
 from linear_slam_ros.ros.qos import bag_topic_qos
 from linear_slam_ros.ros.spin import node_session, wait_for_subscribers
 
+DEFAULT_CLOCK_HZ = 40.0
+"""Rate of ``/clock`` between messages with ``--clock`` (``ros2 bag play --clock``'s default)."""
+
+
+def clock_qos() -> QoSProfile:
+    """Return the ``/clock`` QoS of ROS 2 (``rclcpp::ClockQoS``): best effort, keep last 1, volatile."""
+    return QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+def clock_msg(time_ns: int) -> Clock:
+    """Return a ``rosgraph_msgs/Clock`` at ``time_ns`` (ns since the epoch)."""
+    msg = Clock()
+    msg.clock.sec, msg.clock.nanosec = divmod(int(time_ns), 1_000_000_000)
+    return msg
+
 
 def play(
     node: Node, records: Sequence[BagRecord], rate_factor: float = 1.0, wait_s: float = 30.0,
-    on_start: Callable[[], None] | None = None,
+    on_start: Callable[[], None] | None = None, clock_hz: float | None = None,
 ) -> float:
     """Publish bag records from ``node``; return the seconds spent publishing.
 
@@ -38,7 +59,15 @@ def play(
         rate_factor: bag-time speed-up (2.0 plays twice as fast; 0 or less: no pauses).
         wait_s: how long to wait for subscribers, and for acknowledgements at the end.
         on_start: called just before the first message is published (after discovery).
+        clock_hz: publish the bag time on ``/clock`` (:func:`clock_msg`): at each message's
+            record time, and at this rate (Hz) while waiting between messages; ``None``: no clock.
+
+    Raises:
+        ConfigError: ``clock_hz`` is not positive.
     """
+    if clock_hz is not None and not clock_hz > 0:
+        raise ConfigError(f"clock rate {clock_hz!r} Hz is not positive")
+    clock = node.create_publisher(Clock, "/clock", clock_qos()) if clock_hz is not None else None
     publishers: dict[str, Publisher] = {}
     for r in records:
         if r.topic not in publishers:
@@ -51,9 +80,15 @@ def play(
     for r in records:
         if rate_factor > 0:
             due = start_wall + (r.time_ns - start_bag) / 1e9 / rate_factor
+            if clock is not None and clock_hz is not None:  # the bag time advancing while waiting
+                while due - time.monotonic() > 1.0 / clock_hz:
+                    time.sleep(1.0 / clock_hz)
+                    clock.publish(clock_msg(start_bag + int((time.monotonic() - start_wall) * rate_factor * 1e9)))
             pause = due - time.monotonic()
             if pause > 0:
                 time.sleep(pause)
+        if clock is not None:
+            clock.publish(clock_msg(r.time_ns))
         _publish_when_room(publishers[r.topic], r.raw, wait_s)
     elapsed = time.monotonic() - start_wall
     for pub in publishers.values():
@@ -88,7 +123,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("bag", type=Path)
     ap.add_argument("--rate-factor", type=float, default=1.0, help="speed-up of bag time (0: as fast as possible)")
     ap.add_argument("--wait", type=float, default=30.0, help="seconds to wait for subscribers and acknowledgements")
+    ap.add_argument(
+        "--clock", type=float, nargs="?", const=DEFAULT_CLOCK_HZ, default=None, metavar="HZ",
+        help=f"publish the bag time on /clock (rosgraph_msgs/Clock), at HZ between messages (default {DEFAULT_CLOCK_HZ:g})",
+    )
     args = ap.parse_args(args_ros[1:])
+    if args.clock is not None and not args.clock > 0:
+        print(f"bag_player: --clock {args.clock:g}: the clock rate must be positive (Hz)", file=sys.stderr)
+        return 2
     try:
         records = list(read_messages(args.bag))
     except LinearSlamError as exc:
@@ -96,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     with node_session("bag_player", argv) as node:
         try:
-            seconds = play(node, records, args.rate_factor, args.wait)
+            seconds = play(node, records, args.rate_factor, args.wait, clock_hz=args.clock)
             node.get_logger().info(f"published {len(records)} messages in {seconds:.2f} s")
             return 0
         except TimeoutError as exc:

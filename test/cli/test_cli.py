@@ -238,3 +238,42 @@ def test_help_shows_defaults(capsys):
             main([command, "--help"])
         assert stop.value.code == 0
         assert expected in capsys.readouterr().out
+
+
+def test_a_folder_that_skips_numbers_is_joined_with_the_gap_as_islands(tmp_path, caplog):
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    folder = resolve_dataset_dir(dataset_archive("8240_data_50_local_maps"))
+    gap = tmp_path / "gap"
+    gap.mkdir()
+    for f in folder.glob("localmap_*.txt"):
+        if f.name not in ("localmap_20.txt", "localmap_33.txt"):  # two submaps lost
+            (gap / f.name).write_text(f.read_text())
+    out = tmp_path / "out"
+    assert main(["join", str(gap), "--method", "online-dc", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    # the part after 20 links back through common features; the part after 33 never meets the rest again
+    assert report["n_submaps"] == 48 and report["n_islands"] == 2 and report["island_sizes"] == [36, 12]
+    assert "2 local map(s) missing (numbers [20, 33])" in caplog.text
+    assert "the results hold the main island (the first submap's): 36 submaps" in caplog.text
+    assert 0 in read_rows(out / "poses.txt") and report["chi2"] > 0  # χ² of the main island's own submaps
+
+
+def test_two_datasets_join_as_two_robots(tmp_path, caplog):
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    folder = resolve_dataset_dir(dataset_archive("8240_data_50_local_maps"))
+    halves = [tmp_path / "a", tmp_path / "b"]
+    for h in halves:
+        h.mkdir()
+    for i in range(1, 51):  # robot b's stream starts at its own localmap_1
+        target = halves[0] / f"localmap_{i}.txt" if i <= 25 else halves[1] / f"localmap_{i - 25}.txt"
+        target.write_text((folder / f"localmap_{i}.txt").read_text())
+    out = tmp_path / "out"
+    assert main(["join", str(halves[0]), str(halves[1]), "--robots", "--method", "online-dc", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["n_submaps"] == 50 and report["n_islands"] == 1, report
+    poses = read_rows(out / "poses.txt")
+    assert any(k >= 2**32 for k in poses) and 0 in poses  # robot 1's poses, renamed; robot 0's as they were
+    assert main(["join", str(halves[0]), str(halves[1]), "--out", str(tmp_path / "x")]) == 2
+    assert "2 datasets given: joining several needs --robots" in caplog.text

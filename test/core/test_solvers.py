@@ -71,3 +71,34 @@ def test_libcholmod_equals_scikit_sparse_bit_for_bit_and_lets_other_threads_run(
     counter.join()
     during = [t for t in ticks if t0 <= t <= t0 + seconds]
     assert seconds > 0.02 and len(during) >= seconds / 0.0005 / 10  # the other thread ran all along
+
+
+def test_reused_analysis_solves_as_a_fresh_one_and_analyses_once_per_pattern(rng):
+    from linear_slam_ros.core.cholmod import ReusedAnalysis, solve_spd
+
+    def spd(density: float) -> sp.csr_matrix:
+        m = rng.standard_normal((80, 80)) * (rng.random((80, 80)) < density)
+        return sp.csr_matrix(m @ m.T + 3.0 * np.eye(80))
+
+    a = spd(0.08)
+    b = rng.standard_normal(80)
+    solver = ReusedAnalysis()
+    try:
+        for scale in (1.0, 2.0, 0.5):  # same pattern, new values: factorised, not analysed again
+            np.testing.assert_allclose(solver.solve(a * scale, b), solve_spd(a * scale, b), rtol=1e-12, atol=1e-14)
+        assert (solver.analyses, solver.solves) == (1, 3)
+        sub = a.tolil()
+        i, j = next((i, j) for i, j in zip(*a.nonzero(), strict=True) if i != j)
+        sub[i, j] = sub[j, i] = 0.0
+        sub = sp.csr_matrix(sub)
+        sub.eliminate_zeros()  # fewer entries: within the analysed pattern
+        np.testing.assert_allclose(solver.solve(sub, b), solve_spd(sub, b), rtol=1e-12, atol=1e-14)
+        assert solver.analyses == 1
+        other = spd(0.2)  # entries outside it: the union is analysed
+        np.testing.assert_allclose(solver.solve(other, b), solve_spd(other, b), rtol=1e-12, atol=1e-14)
+        assert solver.analyses == 2
+        with pytest.raises(SolverError, match="not positive definite"):
+            solver.solve(-a, b)
+        np.testing.assert_allclose(solver.solve(a, b), solve_spd(a, b), rtol=1e-12, atol=1e-14)  # usable after a failure
+    finally:
+        solver.close()

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import GeometryError
+from linear_slam_ros.core.feature_frames import choose_frame_features, frame_rotation, n_frame_features
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world, noisy_local_maps
 from linear_slam_ros.feature_only.conversion import to_feature_only
-from linear_slam_ros.feature_only.frames import change_feature_frame, choose_frame_features, frame_rotation, reframe_features
+from linear_slam_ros.feature_only.frames import change_feature_frame, reframe_features
 from linear_slam_ros.feature_only.joining import common_features, join_feature_maps, join_features_dc, join_features_sequential
-from linear_slam_ros.feature_only.maps import FeatureMap, n_frame_features
+from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.feature_only.precondition import precondition
 from linear_slam_ros.feature_only.refine import refine_features
 from support import CACHE, dataset_archive

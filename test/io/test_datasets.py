@@ -112,7 +112,7 @@ def test_archive_is_unpacked_into_cache(tmp_path, rng):
     assert len(read_dataset(archive, cache_dir=tmp_path / "cache").maps) == 3  # from the cache
 
 
-def test_missing_numbers_and_paths_are_reported(tmp_path):
+def test_missing_numbers_and_paths_are_reported(tmp_path, caplog):
     with pytest.raises(DatasetError, match="neither a folder nor a .tar.xz archive"):
         read_dataset(tmp_path / "nope")
     (tmp_path / "empty").mkdir()
@@ -121,8 +121,13 @@ def test_missing_numbers_and_paths_are_reported(tmp_path):
     (tmp_path / "gap").mkdir()
     for i in (1, 3):
         (tmp_path / "gap" / f"localmap_{i}.txt").write_text(PF_TEXT)
-    with pytest.raises(DatasetError, match=r"not numbered 1..N \(missing \[2\]\)"):
-        read_dataset(tmp_path / "gap")
+    gap = read_dataset(tmp_path / "gap")  # a lost submap: read in the order of the numbers, joined as islands
+    assert gap.seqs == (1, 3) and len(gap.maps) == 2 and "missing (numbers [2])" in caplog.text
+    assert read_dataset(tmp_path / "gap").numbers == (1, 3)
+    (tmp_path / "zero").mkdir()
+    (tmp_path / "zero" / "localmap_0.txt").write_text(PF_TEXT)
+    with pytest.raises(DatasetError, match=r"numbers start at 1 \(found localmap_0.txt\)"):
+        read_dataset(tmp_path / "zero")
     bad = tmp_path / "bad.tar.xz"
     bad.write_bytes(b"not an archive")
     with pytest.raises(DatasetError, match="cannot unpack"):

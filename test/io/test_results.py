@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from linear_slam_ros.core.errors import ConfigError, InvalidMapError
 from linear_slam_ros.core.geometry import rot3, wrap_angle
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, exact_pose_graph_maps, make_world
-from linear_slam_ros.io.results import TUM_HEADER, write_result, write_tum_poses
+from linear_slam_ros.io.results import TUM_HEADER, write_result, write_tum_poses, write_tum_stamped
 from support import read_rows
 
 
@@ -64,3 +64,17 @@ def test_unknown_format_is_rejected(tmp_path, rng):
     m = exact_pose_graph_maps(world, rng)[0]
     with pytest.raises(ConfigError, match=r"unknown pose file format\(s\) \['kitti'\]"):
         write_result(tmp_path, m, m.frame_id, formats=("kitti",))
+
+
+def test_tum_with_stamps_writes_the_stamped_poses_in_time_order(tmp_path, rng):
+    world = make_world(2, 12, 10, rng)
+    joined = exact_local_maps(world, rng, 12, sensor_range=60)[0]  # poses 1..12 in the frame of pose 0
+    stamps = {5: 1_700_000_002.5, 3: 1_700_000_001.25, 12: 1_700_000_003.0, 99: 7.0}  # 99: not in the map
+    assert write_tum_stamped(tmp_path / "s.tum", joined, 0, stamps) == 3
+    tum = read_tum(tmp_path / "s.tum")
+    assert tum[:, 0].tolist() == [1_700_000_001.25, 1_700_000_002.5, 1_700_000_003.0]  # by stamp, not by id
+    for row, pid in zip(tum, (3, 5, 12), strict=True):
+        np.testing.assert_array_equal(row[1:3], joined.pose(pid)[:2])
+        assert abs(wrap_angle(2.0 * np.arctan2(row[6], row[7]) - joined.pose(pid)[2])) < 1e-15
+    with pytest.raises(InvalidMapError, match="poses must be written in the frame of pose 4"):
+        write_tum_stamped(tmp_path / "s.tum", joined, 4, stamps)

@@ -13,6 +13,7 @@ from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.divide_conquer import Deferred
+from linear_slam_ros.joining.islands import poses_of
 from support import global_map_of
 
 
@@ -49,9 +50,11 @@ def test_out_of_order_duplicates_and_gaps(maps):
     assert j.offer(maps[5], 6) == []
     joined = j.offer(maps[6], 7)
     assert "gap" in dict(reasons) and "submaps seq 4..4 never arrived or were rejected" in dict(reasons)["gap"]
-    assert joined == []  # seq 5 starts at pose 12, not in the map (ends at 9): rejected
-    # a rejection does not use up seq 5 (a valid 5 may still come); 6 and 7 wait behind it
-    assert j.rejected["FrameError"] == 1 and j.state.n_joined == 3 and j.expected == 5
+    # seq 5 starts at pose 12, not in the map (it ends at 9): after the gap it starts an island, and 6, 7 continue it
+    assert joined == [5, 6, 7] and "FrameError" not in j.rejected
+    # the island shares features with the map: linked at once, one island of two chains
+    assert [(s.label, s.n_submaps, s.chains) for s in j.state.islands] == [(0, 6, (0, 1))]
+    assert set(poses_of(global_map_of(j.state)).tolist()) >= set(poses_of(maps[6]).tolist())
 
 
 def test_rejected_submap_leaves_the_map_unchanged(maps):
@@ -167,8 +170,8 @@ def test_a_gap_that_cannot_fill_is_skipped_after_the_timeout(maps):
     clock.now = 0.5
     assert j.expire() == []
     clock.now = 1.2
-    assert j.expire() == []  # 3 starts at pose 6, the map ends at 3: skipped to, then rejected
-    assert [r for r, _ in reasons] == ["gap", "FrameError"]
+    assert j.expire() == [3]  # 3 starts at pose 6, the map ends at 3: skipped to, it starts an island
+    assert [r for r, _ in reasons] == ["gap"] and len(j.state.islands) == 2
 
 
 def test_the_reorder_buffer_is_bounded_in_count_and_bytes(maps):

@@ -465,3 +465,33 @@ def test_decoded_sparse_maps_stay_sparse_and_equal_the_original():
     m = LocalMap(2, 0, None, np.arange(1, 151), np.ones(150, np.int8), np.zeros(n), info, name="m")
     back = decode_map(*parts(to_msg(encode_map(m, 1)))).local_map
     assert sp.issparse(back.info) and (back.info != m.info).nnz == 0
+
+
+def test_global_map_carries_its_islands_and_reads_earlier_statistics():
+    from msg_adapters.global_map import encode_global
+    from msg_adapters.layout import STATS_FIELDS
+
+    world = make_world(2, 6, 8, np.random.default_rng(3))
+    m = noisy_local_maps(world, np.random.default_rng(4), steps_per_map=3)[0]
+    stats = {k: float(i) for i, k in enumerate(STATS_FIELDS)}
+    enc = encode_global(m, 4, Stamp(), 5, stats, islands=[5, 2])
+    decoded = decode_map(enc.labels, enc.sizes, enc.data)
+    assert decoded.islands == (5, 2) and decoded.stats == stats and decoded.stats["n_islands"] == 7.0
+    assert decode_map(*_without(enc, "islands")).islands is None
+    # a stats segment of an earlier version (7 values, no n_islands) is read as far as it goes
+    labels, sizes, data = _without(enc, "islands")
+    i = labels.index("stats")
+    start = sum(sizes[:i])
+    old = decode_map(labels, sizes[:i] + (7,) + sizes[i + 1 :], np.concatenate([data[: start + 7], data[start + 8 :]]))
+    assert old.stats == {k: stats[k] for k in STATS_FIELDS[:7]}
+    bad = np.concatenate([enc.data[:-1], [2.5]])
+    with pytest.raises(MessageError, match="segment 'islands' must hold integers"):
+        decode_map(enc.labels, enc.sizes, bad)
+
+
+def _without(enc, label: str) -> tuple[tuple[str, ...], tuple[int, ...], np.ndarray]:
+    """The segments of an encoded message without ``label``."""
+    i = enc.labels.index(label)
+    start = sum(enc.sizes[:i])
+    data = np.concatenate([enc.data[:start], enc.data[start + enc.sizes[i] :]])
+    return enc.labels[:i] + enc.labels[i + 1 :], enc.sizes[:i] + enc.sizes[i + 1 :], data

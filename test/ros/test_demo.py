@@ -7,6 +7,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from linear_slam_ros.joiner.config import JoinerConfig
 from linear_slam_ros.ros.bench_node import _checks, to_markdown
 from support import REPO
@@ -48,3 +50,14 @@ def test_benchmark_checks_name_every_missed_target():
     assert "Targets missed: city: join_p99, city: map_fresh_p99, city: throughput" in table
     small = _checks({**entry, "n_submaps_sent": 500, "n_submaps_joined": 500})
     assert small["map_fresh_p99"] is None and small["throughput"] is None  # targets of the 10,000/20,000 scale only
+
+
+def test_sim_demo_refuses_bad_sizes_before_starting_anything(tmp_path, capsys):
+    from linear_slam_ros.core.errors import ConfigError
+    from linear_slam_ros.ros.demo import main, run_sim_demo
+
+    assert main(["--sim", "--n-maps", "0", "--out", str(tmp_path)]) == 2
+    assert "--n-maps 0 must be at least 1 and --sim-rate 20.0 positive" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match=r"--sim-rate -1\.0 positive"):
+        run_sim_demo(tmp_path, n_maps=5, rate=-1.0)
+    assert not any(tmp_path.iterdir())  # nothing written

@@ -69,6 +69,7 @@ from linear_slam_ros.ros.process import stop_process
 from linear_slam_ros.ros.qos import bag_topic_qos, latched_qos
 from linear_slam_ros.ros.spin import wait_for_subscribers
 from msg_adapters import decode_chunk, decode_map, encode_map
+from msg_adapters.layout import STATS_FIELDS
 from ros_support import REPO, JoinerProcess, dataset_bag
 from support import dataset_source
 
@@ -746,9 +747,8 @@ class View:
     def __init__(self, raw: bytes) -> None:
         s = segs_of(raw)
         header = seg(s, "header")
-        names = ("n_joined", "n_rejected", "last_join_ms", "join_ms_p50", "join_ms_p99", "join_ms_max", "join_seconds_total")
         try:
-            self.stats: dict[str, float] = dict(zip(names, seg(s, "stats").tolist(), strict=True))
+            self.stats: dict[str, float] = dict(zip(STATS_FIELDS, seg(s, "stats").tolist(), strict=True))
         except (KeyError, ValueError):
             self.stats = {}
         self.seq, self.n_submaps = int(header[3]), int(header[8])

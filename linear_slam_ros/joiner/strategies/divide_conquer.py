@@ -51,6 +51,10 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
         """Return the map in the frame of pose ``pose_id``."""
         return change_frame(result, pose_id)
 
+    def seed(self, joined: LocalMap, n_submaps: int) -> OnlineDCState:
+        """Return a stack of one entry, the joined map, counting ``n_submaps`` submaps."""
+        return OnlineDCState(stack=(joined,), counts=(n_submaps,), n_joined=n_submaps)
+
     def defer(self, state: OnlineDCState, above_scalars: int | None) -> OnlineDCState:
         """Defer the merges of more than ``above_scalars`` state scalars (see :class:`OnlineDCState`)."""
         return replace(state, defer_above=above_scalars)

@@ -13,7 +13,7 @@ from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.joiner.strategy import FoldStrategy, JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.chain import chain_end_pose
 from linear_slam_ros.joining.gate import Marginal
-from linear_slam_ros.joining.sequential import SequentialState, sequential_step
+from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, sequential_step
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +55,10 @@ class Sequential(FoldStrategy[SequentialState, LocalMap]):
                 SEQUENTIAL_MAX_SCALARS, after,
             )
         return joined
+
+    def seed(self, joined: LocalMap, n_submaps: int) -> SequentialState:
+        """Return the joined map in covariance form (one dense inversion, O(n^3)) in its own frame."""
+        return SequentialState(CovarianceMap.from_local_map(joined), n_submaps)
 
     def result(self, state: SequentialState) -> LocalMap | None:
         """Return the global map in information form, in the newest end pose's frame."""

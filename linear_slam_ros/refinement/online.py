@@ -1,0 +1,596 @@
+"""Gauss-Newton on the map-joining objective (eq. (7)) over a growing stream of submaps.
+
+:class:`OnlineRefiner` keeps every submap it is given and an estimate of all their variables in
+the frame of the first submap's frame pose (the origin, not a variable). It works one step at a
+time, so its owner (:mod:`linear_slam_ros.refinement.worker`) decides between steps whether to
+take in new submaps, publish, or stop:
+
+- :meth:`OnlineRefiner.submit` queues a submap (as joined by the linear joiner, gate decisions
+  applied); :meth:`OnlineRefiner.linear` hands over the newest linear estimate of the joiner.
+- :meth:`OnlineRefiner.absorb` takes the queued submaps in. The previous solution is kept (warm
+  start); a variable it has not seen takes the newest linear estimate's value, moved rigidly so
+  that the newest pose both share (the anchor) sits where the refined solution has it; a
+  variable the linear estimate lacks too is chained from its submap's frame pose. The objective
+  is extended, not rebuilt: the variable layout only grows, so earlier submaps' index records
+  stay valid.
+- :meth:`OnlineRefiner.iterate` takes one Gauss-Newton step (step halving, angles wrapped): the
+  same step as :func:`linear_slam_ros.evaluation.nonlinear.gauss_newton`.
+
+Queued submaps are taken in mid-round (:meth:`OnlineRefiner.absorb_due`) once they number
+``growth`` times those already absorbed, or once none has arrived for ``idle_s``: rounds then
+cost a geometric series, about ``(1 + growth) / growth`` times the last one, whatever the stream
+length. :func:`refine_offline` runs the same refiner over a whole dataset (``join --refine``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+
+from linear_slam_ros.core import cholmod, least_squares, solvers
+from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
+from linear_slam_ros.core.geometry import (
+    points_from_frame,
+    points_to_frame,
+    pose_size,
+    poses_from_frame,
+    poses_to_frame,
+    wrap_angle,
+)
+from linear_slam_ros.core.local_map import POSE, LocalMap, angle_mask, pose_key, to_dense, var_keys, var_offsets, var_sizes
+from linear_slam_ros.evaluation.objective import MapObjective
+
+logger = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+IntArray = npt.NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class RefinerConfig:
+    """When the refiner takes in new submaps, stops iterating and publishes.
+
+    Attributes:
+        growth: absorb queued submaps in mid-round once they number at least this fraction of
+            the submaps absorbed so far (> 0; 0.25: rounds at 1, 1.25, 1.56, ... times the data).
+        idle_s: absorb queued submaps once none has arrived for this long, s (the end of a stream).
+        chi2_rtol: a round has converged when a step lowers χ² by at most this fraction.
+        step_tol: ... or when its largest component is below this (m, rad).
+        publish_period: least time between two publications of a round that has not converged
+            (the worker also publishes, once the stream is idle, each step that is near the optimum).
+        max_round_iterations: a round stops (as converged) after this many steps.
+        reuse_analysis: keep CHOLMOD's analysis (ordering, symbolic factorisation) across the
+            steps of a round, whose normal equations share one pattern (with the ``libcholmod``
+            backend; otherwise each step solves afresh).
+    """
+
+    growth: float = 0.25
+    idle_s: float = 0.05
+    chi2_rtol: float = 1e-7
+    step_tol: float = 1e-10
+    publish_period: float = 1.0
+    max_round_iterations: int = 50
+    reuse_analysis: bool = True
+
+    def __post_init__(self) -> None:
+        checks = (
+            ("growth", self.growth > 0 and math.isfinite(self.growth)),
+            ("idle_s", self.idle_s >= 0 and math.isfinite(self.idle_s)),
+            ("chi2_rtol", 0 <= self.chi2_rtol < 1),
+            ("step_tol", self.step_tol >= 0),
+            ("publish_period", self.publish_period >= 0),
+            ("max_round_iterations", self.max_round_iterations >= 1),
+        )
+        for name, ok in checks:
+            if not ok:
+                raise ConfigError(f"refiner {name}={getattr(self, name)!r} is out of range")
+
+
+@dataclass(frozen=True)
+class GateDecision:
+    """What the χ² gate split off a submap before it was joined (the joiner's ``GateRecord``).
+
+    Attributes:
+        variables: ``(id, kind)`` of the variables split off (when ``whole``: the worst ones only).
+        whole: every variable the map already held was split off (but the submap's end pose).
+    """
+
+    variables: tuple[tuple[int, int], ...]
+    whole: bool
+
+
+@dataclass(frozen=True)
+class Submission:
+    """A submap the linear joiner joined, for the refiner.
+
+    Attributes:
+        seq: its sequence number.
+        submap: the submap as received (in its own frame pose's frame).
+        arrived: when it arrived, ``time.monotonic()`` s (the same clock in every process).
+        stamp: its message stamp ``(sec, nanosec)``.
+        gate: what the gate split off before joining (``None``: nothing).
+    """
+
+    seq: int
+    submap: LocalMap
+    arrived: float
+    stamp: tuple[int, int] = (0, 0)
+    gate: GateDecision | None = None
+
+
+@dataclass(frozen=True)
+class LinearEstimate:
+    """The linear joiner's estimate of its map's variables (no information: only the warm start needs it).
+
+    Attributes:
+        dim: 2 or 3.
+        frame_id: pose whose frame ``x`` is in (not a variable).
+        ids: ``(m,)`` variable ids.
+        kinds: ``(m,)`` variable kinds.
+        x: ``(n,)`` estimate, m and rad.
+        n_submaps: submaps joined into it.
+    """
+
+    dim: int
+    frame_id: int
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    x: FloatArray
+    n_submaps: int
+
+    @classmethod
+    def of_map(cls, joined: LocalMap, n_submaps: int) -> LinearEstimate:
+        """Take a joined map's estimate (its information is left behind)."""
+        return cls(joined.dim, joined.frame_id, joined.ids, joined.kinds, joined.x, n_submaps)
+
+
+@dataclass(frozen=True)
+class RefinedMap:
+    """A refined map and where it stands.
+
+    Attributes:
+        map: the estimate in the origin's frame (the first submap's frame pose), with information
+            ``J^T W J`` at the estimate (or the identity, a placeholder, when asked without).
+        chi2: eq. (7) summed over the ``n_submaps`` submaps, at the estimate.
+        n_submaps: submaps it covers; ``last_seq``, ``stamp``, ``last_arrival`` (monotonic s): of the newest.
+        iterations: Gauss-Newton steps taken since the refiner started.
+        converged: whether the round on these submaps has converged.
+        initial_chi2: χ² of the warm start of this round (after the last absorb).
+    """
+
+    map: LocalMap
+    chi2: float
+    n_submaps: int
+    last_seq: int
+    stamp: tuple[int, int]
+    last_arrival: float
+    iterations: int
+    converged: bool
+    initial_chi2: float
+
+
+def apply_gate(submap: LocalMap, decision: GateDecision | None, known: Callable[[int], bool]) -> LocalMap:
+    """Return the submap as the joiner joined it: the gate's variables marginalised out.
+
+    Args:
+        submap: the submap as received.
+        decision: what the gate split off (``None``: the submap unchanged).
+        known: whether a variable key (``2 id + kind``) is already in the map (for ``whole``).
+
+    Raises:
+        InvalidMapError: a split-off variable is not in the submap, or nothing would be left.
+        SolverError: the split-off variables' information is not positive definite.
+    """
+    if decision is None:
+        return submap
+    if decision.whole:
+        drop = [
+            i for i, k in enumerate(submap.keys.tolist())
+            if known(k) and not (submap.kinds[i] == POSE and submap.ids[i] == submap.end_id)
+        ]
+    else:
+        drop = []
+        for var_id, kind in decision.variables:
+            index = submap.index_of(int(2 * var_id + kind))
+            if index is None:
+                raise InvalidMapError(f"gated variable (id {var_id}, kind {kind}) is not in submap {submap.name!r}")
+            drop.append(index)
+    if len(drop) >= submap.n_vars:
+        raise InvalidMapError(f"the gate split off all {submap.n_vars} variables of submap {submap.name!r}")
+    if not drop:
+        return submap
+    # imported here: the gate module pulls in scipy.stats (about 1 s of the refiner process's start-up)
+    from linear_slam_ros.joining.gate import marginalise_out
+
+    return marginalise_out(submap, drop)
+
+
+@dataclass
+class _Records:
+    """The objective's index records, grown by one batch of submaps at a time (see :class:`MapObjective`)."""
+
+    z: list[FloatArray] = field(default_factory=list)
+    angle_rows: list[npt.NDArray[np.bool_]] = field(default_factory=list)
+    feat_rows: list[IntArray] = field(default_factory=list)
+    feat_cols: list[IntArray] = field(default_factory=list)
+    feat_ref: list[IntArray] = field(default_factory=list)
+    pose_rows: list[IntArray] = field(default_factory=list)
+    pose_cols: list[IntArray] = field(default_factory=list)
+    pose_ref: list[IntArray] = field(default_factory=list)
+    weights: list[sp.csr_matrix] = field(default_factory=list)
+
+
+def _cat(parts: list[npt.NDArray[np.generic]], dtype: type) -> npt.NDArray[np.generic]:
+    return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype)
+
+
+class OnlineRefiner:
+    """Gauss-Newton over every submap absorbed so far, warm-started across rounds (module docstring).
+
+    Not thread-safe: one owner calls it. Attributes of interest: :attr:`n_absorbed`,
+    :attr:`n_pending`, :attr:`iterations`, :attr:`converged`, :attr:`chi2`.
+    """
+
+    def __init__(self, config: RefinerConfig | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config or RefinerConfig()
+        self._clock = clock
+        self._pending: list[Submission] = []
+        self._last_received = -math.inf
+        self._linear: LinearEstimate | None = None
+        self.n_absorbed = 0
+        self.n_skipped = 0
+        self.iterations = 0
+        self.round_iterations = 0
+        self.converged = True  # nothing to do yet
+        self.chi2 = 0.0
+        self.initial_chi2 = 0.0
+        self.last_relative_decrease = math.inf  # of χ² by the last step, as a fraction of χ² after it
+        self._dim = 0
+        self._origin: int | None = None
+        self._index: dict[int, int] = {}  # variable key -> variable index; the origin pose -> -2
+        self._ids: list[int] = []
+        self._kinds: list[int] = []
+        self._offsets: list[int] = []
+        self._n_state = 0
+        self._x = np.zeros(0)
+        self._buf = np.zeros(0)  # the state while absorbing: absorbed values, then the new ones' warm start
+        self._angles = np.zeros(0, dtype=bool)
+        self._n_rows = 0
+        self._records = _Records()
+        self._objective: MapObjective | None = None
+        self._r = np.zeros(0)
+        self._jac: sp.csr_matrix | None = None
+        self._analysis = (
+            cholmod.ReusedAnalysis() if self.config.reuse_analysis and solvers.backend_name() == "libcholmod" else None
+        )
+        self._last: Submission | None = None
+        self._end_id: int | None = None
+
+    # ------------------------------------------------------------------ inputs
+
+    def submit(self, submission: Submission) -> None:
+        """Queue a joined submap; it is taken in by the next :meth:`absorb`."""
+        self._pending.append(submission)
+        self._last_received = self._clock()
+
+    def linear(self, estimate: LinearEstimate) -> None:
+        """Keep the newest linear estimate (older ones are ignored) for the warm start of new variables."""
+        if self._linear is None or estimate.n_submaps >= self._linear.n_submaps:
+            self._linear = estimate
+
+    @property
+    def n_pending(self) -> int:
+        """Submaps queued and not absorbed yet."""
+        return len(self._pending)
+
+    def absorb_due(self) -> bool:
+        """Whether queued submaps should be taken in now (``growth`` reached, or ``idle_s`` without arrivals)."""
+        if not self._pending:
+            return False
+        if self.n_absorbed == 0 or self.converged:
+            return self.n_absorbed == 0 or self._clock() - self._last_received >= self.config.idle_s or (
+                len(self._pending) >= self.config.growth * self.n_absorbed
+            )
+        return len(self._pending) >= self.config.growth * self.n_absorbed or (
+            self._clock() - self._last_received >= self.config.idle_s
+        )
+
+    def stream_idle(self) -> bool:
+        """Whether nothing is queued and no submap has arrived for ``idle_s`` s (the end of a stream, a pause)."""
+        return not self._pending and self._clock() - self._last_received >= self.config.idle_s
+
+    def seconds_until_due(self) -> float | None:
+        """Seconds until queued submaps become due by ``idle_s`` (``None``: nothing queued)."""
+        if not self._pending:
+            return None
+        return max(0.0, self.config.idle_s - (self._clock() - self._last_received))
+
+    # ------------------------------------------------------------------ absorbing
+
+    def absorb(self) -> int:
+        """Take every queued submap in: extend the variables (warm start) and the objective.
+
+        A submap whose frame pose is not among the variables (it cannot be placed) is skipped
+        with a warning and counted in :attr:`n_skipped`.
+
+        Returns:
+            The number of submaps absorbed.
+        """
+        batch, self._pending = self._pending, []
+        if not batch:
+            return 0
+        if self._origin is None:
+            self._origin = batch[0].submap.frame_id
+            self._dim = batch[0].submap.dim
+            self._index[pose_key(self._origin)] = -2
+        lin = self._anchored_linear()
+        self._buf = np.empty(max(2 * self._n_state, 1024))
+        self._buf[: self._n_state] = self._x
+        rec = _Records()
+        taken = 0
+        for sub in batch:
+            try:
+                m = apply_gate(sub.submap, sub.gate, lambda k: k in self._index)
+                self._take(m, lin, rec)
+            except LinearSlamError as exc:
+                self.n_skipped += 1
+                logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
+                continue
+            taken += 1
+            self._last = sub
+            self._end_id = m.end_id if m.end_id is not None else self._end_id
+        self._x = self._buf[: self._n_state].copy()
+        self._buf = np.zeros(0)
+        self._angles = angle_mask(self._dim, np.asarray(self._kinds, dtype=np.int8))
+        for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref"):
+            getattr(self._records, name).append(
+                _cat(getattr(rec, name), bool if name == "angle_rows" else (float if name == "z" else np.int64))
+            )
+        if rec.weights:
+            merged: sp.csr_matrix = sp.block_diag([*self._records.weights, *rec.weights], format="csr")  # type: ignore[assignment]
+            self._records.weights = [merged]
+        self.n_absorbed += taken
+        self._build_objective()
+        self.round_iterations = 0
+        self.converged = False
+        self.last_relative_decrease = math.inf
+        return taken
+
+    def _take(self, m: LocalMap, lin: tuple[dict[int, int], FloatArray, IntArray] | None, rec: _Records) -> None:
+        """Index one submap's variables (appending new ones with their warm start) and its records."""
+        dim, p = self._dim, pose_size(self._dim)
+        if m.dim != dim:
+            raise InvalidMapError(f"submap {m.name!r} is {m.dim}D; the refiner's map is {dim}D")
+        if m.frame_id == self._origin:
+            ref, frame_value = -1, np.zeros(p)
+        else:
+            ref_index = self._index.get(pose_key(m.frame_id))
+            if ref_index is None:
+                raise FrameError(f"frame pose {m.frame_id} of submap {m.name!r} is not in the refined map")
+            ref = self._offsets[ref_index]
+            frame_value = self._buf[ref : ref + p].copy()
+        keys = m.keys.tolist()
+        pos = np.empty(len(keys), dtype=np.int64)
+        sizes = m.sizes
+        local_offsets = m.offsets
+        cols = np.empty(len(keys), dtype=np.int64)
+        fresh: list[int] = []
+        for i, k in enumerate(keys):
+            j = self._index.get(k)
+            if j is None:
+                j = len(self._ids)
+                self._index[k] = j
+                self._ids.append(int(m.ids[i]))
+                self._kinds.append(int(m.kinds[i]))
+                self._offsets.append(self._n_state)
+                self._n_state += int(sizes[i])
+                fresh.append(i)
+            pos[i] = j
+            cols[i] = self._offsets[j] if j >= 0 else -1  # -1: the origin pose (a zero pose, no column)
+        if fresh:
+            self._initial_values(m, fresh, frame_value, lin)
+        is_pose = m.kinds == POSE
+        rows = self._n_rows + local_offsets
+        rec.pose_rows.append(rows[is_pose])
+        rec.pose_cols.append(cols[is_pose])
+        rec.pose_ref.append(np.full(int(is_pose.sum()), ref))
+        rec.feat_rows.append(rows[~is_pose])
+        rec.feat_cols.append(cols[~is_pose])
+        rec.feat_ref.append(np.full(int((~is_pose).sum()), ref))
+        rec.z.append(m.x)
+        rec.angle_rows.append(m.angles)
+        rec.weights.append(m.info if sp.issparse(m.info) else sp.csr_matrix(to_dense(m.info)))
+        self._n_rows += m.state_dim
+
+    def _initial_values(
+        self, m: LocalMap, fresh: list[int], frame_value: FloatArray, lin: tuple[dict[int, int], FloatArray, IntArray] | None
+    ) -> None:
+        """Write the warm start of a submap's new variables (the anchored linear estimate, else chained
+        from the frame pose) into the state buffer, growing it as needed."""
+        dim = self._dim
+        if self._n_state > self._buf.size:
+            grown = np.empty(max(2 * self._buf.size, self._n_state))
+            grown[: self._buf.size] = self._buf
+            self._buf = grown
+        for i in fresh:
+            local = m.x[m.scalar_slice(i)]
+            key = int(m.keys[i])
+            start = self._offsets[self._index[key]]
+            if lin is not None and key in lin[0]:
+                j = lin[0][key]
+                value = lin[1][lin[2][j] : lin[2][j] + local.size]
+            elif m.kinds[i] == POSE:
+                t, a = poses_from_frame(dim, frame_value[:dim], frame_value[dim:], local[:dim], local[dim:])
+                value = np.concatenate([t, a])
+            else:
+                value = points_from_frame(dim, frame_value[:dim], frame_value[dim:], local)
+            self._buf[start : start + local.size] = value
+
+    def _anchored_linear(self) -> tuple[dict[int, int], FloatArray, IntArray] | None:
+        """The linear estimate moved rigidly onto the refined solution at their newest common pose.
+
+        Returns:
+            ``(key -> variable index, values, offsets)`` of the moved estimate (its frame pose
+            included as a variable), or ``None`` without a usable estimate.
+        """
+        est = self._linear
+        if est is None or est.dim != self._dim:
+            return None
+        dim, p = self._dim, pose_size(self._dim)
+        ids = np.concatenate([est.ids, [est.frame_id]]).astype(np.int64)
+        kinds = np.concatenate([est.kinds, [POSE]]).astype(np.int8)
+        x = np.concatenate([est.x, np.zeros(p)])
+        sizes = var_sizes(dim, kinds)
+        offsets = var_offsets(sizes)
+        keys = var_keys(ids, kinds)
+        lookup = {int(k): i for i, k in enumerate(keys.tolist())}
+        common = [int(i) for i, k in zip(ids.tolist(), keys.tolist(), strict=True) if k % 2 == 0 and k in self._index]
+        if not common:
+            return None
+        anchor = max(common)
+        a_lin = x[offsets[lookup[pose_key(anchor)]] :][:p]
+        j = self._index[pose_key(anchor)]
+        a_ref = np.zeros(p) if j == -2 else self._x[self._offsets[j] : self._offsets[j] + p]
+        moved = np.empty_like(x)
+        is_pose = kinds == POSE
+        pose_idx = offsets[is_pose][:, None] + np.arange(p)
+        feat_idx = offsets[~is_pose][:, None] + np.arange(dim)
+        if pose_idx.size:
+            rel = poses_to_frame(dim, a_lin[:dim], a_lin[dim:], x[pose_idx[:, :dim]], x[pose_idx[:, dim:]])
+            t, a = poses_from_frame(dim, a_ref[:dim], a_ref[dim:], rel.translations, rel.angles)
+            moved[pose_idx[:, :dim]] = t
+            moved[pose_idx[:, dim:]] = a
+        if feat_idx.size:
+            rel_f = points_to_frame(dim, a_lin[:dim], a_lin[dim:], x[feat_idx])
+            moved[feat_idx] = points_from_frame(dim, a_ref[:dim], a_ref[dim:], rel_f.points)
+        return lookup, moved, offsets
+
+    def _build_objective(self) -> None:
+        rec = self._records
+        assert self._origin is not None
+        self._objective = MapObjective(
+            dim=self._dim, n_state=self._n_state, origin_id=self._origin, z=np.concatenate(rec.z),
+            weight=rec.weights[0], angle_rows=np.concatenate(rec.angle_rows),
+            feat_rows=np.concatenate(rec.feat_rows), feat_cols=np.concatenate(rec.feat_cols),
+            feat_ref=np.concatenate(rec.feat_ref), pose_rows=np.concatenate(rec.pose_rows),
+            pose_cols=np.concatenate(rec.pose_cols), pose_ref=np.concatenate(rec.pose_ref),
+        )
+        # one array per record kind from now on: the next absorb appends to it
+        for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref"):
+            setattr(rec, name, [getattr(self._objective, name)])
+        self._r, self._jac = self._residuals(self._x)
+        self.chi2 = self.initial_chi2 = float(self._r @ (self._objective.weight @ self._r))
+        if self._analysis is not None:  # every step's J^T W J has its entries within |J|^T |W| |J|: one analysis a round
+            ones = self._jac.copy()
+            ones.data = np.ones_like(ones.data)
+            self._analysis.expect(ones.T @ (abs(self._objective.weight) @ ones))
+
+    # ------------------------------------------------------------------ iterating
+
+    def _residuals(self, x: FloatArray) -> tuple[FloatArray, sp.csr_matrix]:
+        assert self._objective is not None
+        r, jac = self._objective.residuals(x, jacobian=True)
+        assert jac is not None
+        return r, jac
+
+    def _apply_step(self, x: FloatArray, dx: FloatArray) -> FloatArray:
+        x_new = x + dx
+        x_new[self._angles] = wrap_angle(x_new[self._angles])
+        return x_new
+
+    def iterate(self) -> bool:
+        """Take one Gauss-Newton step on the absorbed submaps.
+
+        Returns:
+            Whether the round has converged (no step is taken once it has). A singular system
+            ends the round with a warning (the estimate stays as it was).
+        """
+        if self.converged or self._objective is None or self._jac is None:
+            return True
+        try:
+            step = least_squares.gauss_newton_step(
+                self._residuals, self._objective.weight, self._x, self._r, self._jac, self.chi2, self._apply_step,
+                self._analysis.solve if self._analysis is not None else None,
+            )
+        except LinearSlamError as exc:
+            logger.warning("refiner: Gauss-Newton step failed on %d submaps: %s", self.n_absorbed, exc)
+            self.converged = True
+            return True
+        self.round_iterations += 1
+        if step is None:
+            self.converged = True
+            return True
+        self.iterations += 1
+        decrease = self.chi2 - step.chi2
+        self._x, self._r, self._jac, self.chi2 = step.x, step.r, step.jacobian, step.chi2
+        self.last_relative_decrease = decrease / max(self.chi2, 1e-300)
+        cfg = self.config
+        self.converged = (
+            step.max_step < cfg.step_tol or decrease <= cfg.chi2_rtol * max(self.chi2, 1e-300)
+            or self.round_iterations >= cfg.max_round_iterations
+        )
+        return self.converged
+
+    def result(self, information: bool = True) -> RefinedMap:
+        """Return the current estimate as a map in the origin's frame.
+
+        Args:
+            information: attach ``J^T W J`` at the estimate (a sparse product); else the identity.
+
+        Raises:
+            InvalidMapError: nothing has been absorbed yet.
+        """
+        if self._objective is None or self._last is None or self._jac is None or self._origin is None:
+            raise InvalidMapError("the refiner holds no submap yet")
+        if information:
+            jac = self._jac
+            hessian = (jac.T @ (self._objective.weight @ jac)).tocsr()
+            info: sp.csr_matrix = ((hessian + hessian.T) * 0.5).tocsr()
+        else:
+            info = sp.identity(self._n_state, format="csr")
+        end_id = self._end_id if self._end_id != self._origin else None
+        refined = LocalMap.trusted(
+            self._dim, self._origin, end_id, np.asarray(self._ids, np.int64), np.asarray(self._kinds, np.int8),
+            self._x.copy(), info, "refined map",
+        )
+        last = self._last
+        return RefinedMap(
+            refined, self.chi2, self.n_absorbed, last.seq, last.stamp, last.arrived, self.iterations, self.converged,
+            self.initial_chi2,
+        )
+
+
+def refine_offline(
+    maps: Sequence[LocalMap], linear: LocalMap | None = None, config: RefinerConfig | None = None,
+    max_iterations: int = 50,
+) -> RefinedMap:
+    """Refine a whole stream at once with :class:`OnlineRefiner` (``join --refine``, tests).
+
+    Args:
+        maps: the submaps in joining order.
+        linear: the linear joiner's map of them (any frame holding their poses); ``None``: chain.
+        config: the refiner's settings (``chi2_rtol`` decides convergence).
+        max_iterations: Gauss-Newton steps at most.
+
+    Raises:
+        InvalidMapError: ``maps`` is empty.
+    """
+    if not maps:
+        raise InvalidMapError("no submaps to refine")
+    cfg = config or RefinerConfig()
+    refiner = OnlineRefiner(RefinerConfig(**{**cfg.__dict__, "max_round_iterations": max_iterations}))
+    if linear is not None:
+        refiner.linear(LinearEstimate.of_map(linear, len(maps)))
+    for seq, m in enumerate(maps, start=1):
+        refiner.submit(Submission(seq, m, 0.0))
+    refiner.absorb()
+    while not refiner.iterate():
+        pass
+    return refiner.result()

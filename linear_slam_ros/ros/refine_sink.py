@@ -1,0 +1,66 @@
+"""The refiner process's publisher of ``global_map_refined`` (built in the child by :class:`SinkSpec`).
+
+The joiner node starts :class:`~linear_slam_ros.refinement.worker.RefineWorker` with
+``SinkSpec("linear_slam_ros.ros.refine_sink:make_sink", {...})``; in the child this module
+starts its own rclpy context and node (``<joiner>_refiner``) and publishes each refined map on
+the joiner's resolved ``global_map_refined`` topic (latched), so encoding and sending a large map
+never takes the joiner's interpreter lock. The message has the ``global_map`` layout in the
+joiner's ``output_frame`` and one more segment, ``refine``: ``chi2, iterations, converged,
+lag_s, cpu_s, initial_chi2`` (lag: from the arrival of the newest submap it covers to this
+publication; cpu: the refiner process's CPU time so far).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rclpy
+from std_msgs.msg import Float64MultiArray
+
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.refinement.online import RefinedMap
+from linear_slam_ros.ros.qos import latched_qos
+from msg_adapters import Encoded, Stamp
+from msg_adapters.global_map import encode_empty_global, encode_global
+from msg_adapters.ros import to_msg
+
+REFINE_FIELDS = ("chi2", "iterations", "converged", "lag_s", "cpu_s", "initial_chi2")
+"""The ``refine`` segment of ``global_map_refined``, in order."""
+
+
+class RosSink:
+    """Publishes refined maps on ``topic`` from a node of its own (the child's rclpy context)."""
+
+    def __init__(self, topic: str, node_name: str, output_frame: str) -> None:
+        rclpy.init(args=None)
+        self.node = rclpy.create_node(node_name)
+        self.pub = self.node.create_publisher(Float64MultiArray, topic, latched_qos())
+        self.output_frame = output_frame
+        self.pub.publish(to_msg(encode_empty_global(LocalMap, 0, Stamp(), {})))  # no older refined map stays latched
+
+    def publish(self, refined: RefinedMap, cpu_seconds: float) -> None:
+        """Encode and publish one refined map (module docstring)."""
+        m = refined.map
+        if self.output_frame == "end_pose" and m.end_id is not None and m.end_id != m.frame_id:
+            m = change_frame(m, m.end_id)
+        encoded = encode_global(m, refined.last_seq, Stamp(*refined.stamp), refined.n_submaps, {"n_joined": refined.n_submaps})
+        lag = time.monotonic() - refined.last_arrival
+        values = [refined.chi2, refined.iterations, float(refined.converged), lag, cpu_seconds, refined.initial_chi2]
+        self.pub.publish(to_msg(with_refine_segment(encoded, values)))
+
+    def close(self, cpu_seconds: float) -> None:
+        """Destroy the node and end the child's rclpy context."""
+        self.node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def with_refine_segment(encoded: Encoded, values: list[float]) -> Encoded:
+    """Append the ``refine`` segment (:data:`REFINE_FIELDS`) to an encoded map."""
+    return Encoded(encoded.labels + ("refine",), encoded.sizes + (len(values),), np.concatenate([encoded.data, values]))
+
+
+def make_sink(topic: str, node_name: str, output_frame: str) -> RosSink:
+    """The sink factory named in the joiner's :class:`SinkSpec`."""
+    return RosSink(topic, node_name, output_frame)

@@ -1,0 +1,212 @@
+"""Islands and several robots in the joiner: a gap never ends the map."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.frames import change_frame
+from linear_slam_ros.core.local_map import FEATURE
+from linear_slam_ros.evaluation.runner import run_join
+from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world, noisy_local_maps
+from linear_slam_ros.joiner.joiner import Joiner, current_pose, global_result, island_map
+from linear_slam_ros.joiner.robots import ROBOT_ID_STRIDE, global_pose_id, qualify, robot_slots
+from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
+from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joining.islands import poses_of
+
+
+@pytest.fixture(scope="module")
+def maps():
+    world = make_world(2, 36, 40, np.random.default_rng(21))
+    return noisy_local_maps(world, np.random.default_rng(22), steps_per_map=3)
+
+
+def _sizes(j: Joiner) -> list[tuple[int, int]]:
+    return [(s.label, s.n_submaps) for s in j.state.islands]
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.ONLINE_DC, JoinMethod.SEQUENTIAL])
+def test_a_lost_submap_starts_an_island_that_links_back_through_features(mode, maps, caplog):
+    caplog.set_level(logging.INFO, logger="linear_slam_ros.joiner")
+    j = Joiner(mode)
+    for seq, m in enumerate(maps, start=1):
+        if seq != 4:  # seq 4 is lost
+            j.offer(m, seq)
+    assert j.flush() == list(range(5, len(maps) + 1))  # the stream has ended: seq 4 never comes
+    assert j.rejected == {"gap": 1} and j.state.n_joined == len(maps) - 1
+    assert "starts island 1" in caplog.text and "links island 1 (chain 1) with island 0" in caplog.text
+    assert _sizes(j) == [(0, len(maps) - 1)] and len(j.state.chains) == 2
+    joined = global_result(j.state)
+    full = run_join(maps, mode).result
+    assert joined.frame_id == full.frame_id  # the newest end pose's frame, as without islands
+    assert set(joined.feature_ids.tolist()) == set(full.feature_ids.tolist())
+    lost = set(maps[3].pose_ids.tolist()) - {maps[3].end_id}  # only the lost submap held them
+    assert set(poses_of(joined).tolist()) == set(poses_of(full).tolist()) - lost
+
+
+def test_without_a_gap_a_submap_that_continues_nothing_is_rejected(maps):
+    j = Joiner(JoinMethod.ONLINE_DC)
+    reasons = []
+    j.on_reject = lambda reason, message: reasons.append((reason, message))
+    j.offer(maps[0], 1)
+    assert j.offer(maps[3], 2) == []
+    assert reasons[0][0] == "FrameError"
+    assert "follows seq 1 without a gap" in reasons[0][1] and len(j.state.chains) == 1
+    assert j.offer(maps[1], 2) == [2]  # its number stays open for the valid submap
+
+
+def test_an_island_that_never_links_stays_apart_and_is_said(maps):
+    other_world = make_world(2, 12, 10, np.random.default_rng(99))
+    stranger = [m.replace(ids=np.where(m.kinds == FEATURE, m.ids + 1000, m.ids + 500), frame_id=m.frame_id + 500,
+                          end_id=m.end_id + 500) for m in exact_local_maps(other_world, np.random.default_rng(3), 3)]
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:4], start=1):
+        j.offer(m, seq)
+    assert current_pose(j.state) is not None
+    for seq, m in enumerate(stranger, start=10):  # after a gap: a robot somewhere else, nothing in common
+        j.offer(m, seq)
+    j.flush()
+    assert _sizes(j) == [(0, 4), (1, len(stranger))]
+    main = global_result(j.state)
+    assert main.n_vars == run_join(maps[:4], JoinMethod.ONLINE_DC).result.n_vars  # the main island only
+    other = island_map(j.state, 1)
+    assert other is not None and set(other.feature_ids.tolist()) <= set(range(1001, 1100))
+    assert current_pose(j.state) is None  # the robot is in island 1: no pose in map_frame
+    assert island_map(j.state, 7) is None
+    assert j.stats()["n_islands"] == 2.0
+
+
+def test_feature_only_maps_do_not_start_islands(maps):
+    j = Joiner(JoinMethod.ONLINE_DC, MapType.FEATURE_ONLY)
+    reasons = []
+    j.on_reject = lambda reason, message: reasons.append(message)
+    for seq, m in enumerate(maps[:3], start=1):
+        j.offer(m, seq)
+    far = maps[5].replace(ids=np.where(maps[5].kinds == FEATURE, maps[5].ids + 1000, maps[5].ids))
+    j.offer(far, 5)
+    j.flush()
+    assert reasons[-1].endswith("the maps share no frame; 'feature-only' 'online-dc' maps cannot start islands")
+    assert len(j.state.chains) == 1 and j.state.n_joined == 3
+
+
+def test_islands_and_robot_streams_survive_a_snapshot(maps, tmp_path):
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:8], start=1):
+        if seq != 3:
+            j.offer(m, seq, "")
+    j.flush()
+    j.offer(qualify(maps[0], 1), 1, "b")
+    j.offer(qualify(maps[2], 1), 3, "b")  # waits for b's 2
+    path = tmp_path / "state.npz"
+    write_snapshot(path, j.save())
+    other = Joiner(JoinMethod.ONLINE_DC)
+    other.restore(read_snapshot(path))
+    def chains(joiner: Joiner) -> list[tuple[object, ...]]:
+        return [(c.robot, c.first_pose_id, c.end_id, c.n_joined, c.island, c.stamp) for c in joiner.state.chains]
+
+    assert chains(other) == chains(j) and len(chains(j)) == 3  # robot a's two chains (one island), robot b's
+    assert [(s.robot, s.next_seq, s.last_seq, s.chain) for s in other.state.streams] == [
+        (s.robot, s.next_seq, s.last_seq, s.chain) for s in j.state.streams]
+    assert other.already_handled(3, "b") and not other.already_handled(2, "b")
+    assert other.offer(qualify(maps[1], 1), 2, "b") == [2, 3]
+    assert j.offer(qualify(maps[1], 1), 2, "b") == [2, 3]
+    np.testing.assert_array_equal(global_result(other.state).x, global_result(j.state).x)
+
+
+def test_two_robots_keep_their_sequence_numbers_and_pose_ids_apart(maps):
+    half = len(maps) // 2
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for k in range(half):  # both robots publish seq 1, 2, ... concurrently
+        j.offer(maps[k], k + 1, "a")
+        if half + k < len(maps):
+            j.offer(qualify(maps[half + k], 1), k + 1, "b")
+    assert j.n_skipped == 0 and j.n_rejected == 0
+    assert _sizes(j) == [(0, len(maps))]  # robot b's island met robot a's through common features
+    joined = global_result(j.state, "first_pose")
+    full = run_join(maps, JoinMethod.ONLINE_DC).result
+    b_poses = [int(p) for p in joined.pose_ids if p >= ROBOT_ID_STRIDE]
+    assert b_poses and min(b_poses) == global_pose_id(1, maps[half].frame_id)
+    assert set(joined.feature_ids.tolist()) == set(full.feature_ids.tolist())
+    assert [s.robot for s in j.state.streams] == ["a", "b"]
+
+
+def test_robot_ids_are_global_and_names_checked(maps):
+    m = maps[3]
+    q = qualify(m, 2)
+    assert q.frame_id == 2 * ROBOT_ID_STRIDE + m.frame_id and q.end_id == 2 * ROBOT_ID_STRIDE + m.end_id
+    np.testing.assert_array_equal(q.feature_ids, m.feature_ids)  # features are shared
+    assert qualify(m, 0) is m
+    assert global_pose_id(1, ROBOT_ID_STRIDE * 3 + 4) == ROBOT_ID_STRIDE * 3 + 4  # another robot's pose, named globally
+    assert robot_slots(["a", "b_2"]) == {"a": 0, "b_2": 1}
+    with pytest.raises(ConfigError, match="robots lists 'a' twice"):
+        robot_slots(["a", "a"])
+    with pytest.raises(ConfigError, match=r"robots\[1\]='2x' is not a robot namespace"):
+        robot_slots(["a", "2x"])
+    with pytest.raises(ConfigError, match=r"robots\[0\]='' is not"):
+        robot_slots([""])
+    with pytest.raises(ConfigError, match="robot slot -1 must be >= 0"):
+        qualify(m, -1)
+
+
+def test_a_submap_of_the_other_dimension_never_starts_an_island(maps):
+    other = noisy_local_maps(make_world(3, 9, 10, np.random.default_rng(5)), np.random.default_rng(6), steps_per_map=3)
+    j = Joiner(JoinMethod.ONLINE_DC)
+    reasons = []
+    j.on_reject = lambda reason, message: reasons.append((reason, message))
+    j.offer(maps[0], 1)
+    j.offer(other[1], 3)  # after a gap, but 3D in a 2D map
+    assert j.flush() == []  # the stream has ended: the gap is skipped, the 3D submap rejected and dropped
+    assert [r for r, _ in reasons] == ["gap", "InvalidMapError"]
+    assert "is 3D, the global map is 2D" in reasons[1][1] and len(j.state.chains) == 1 and not j.already_handled(4)
+
+
+def test_a_node_restarted_without_its_state_says_what_its_map_holds(maps):
+    now = [0.0]
+    j = Joiner(JoinMethod.ONLINE_DC, reorder_timeout=1.0, clock=lambda: now[0])
+    reasons = []
+    j.on_reject = lambda reason, message: reasons.append(message)
+    rest = list(enumerate(maps, start=1))[5:]  # the node restarted after seq 5: it is fed the rest
+    for seq, m in rest:
+        assert j.offer(m, seq) == []  # waits: seq 1 is expected
+    now[0] = 1.5
+    assert j.expire() == [seq for seq, _ in rest]
+    assert reasons == ["submaps seq 1..5 never arrived or were rejected (no progress for 1.5 s): skipped"]
+    assert _sizes(j) == [(0, len(rest))] and j.state.first_pose_id == maps[5].frame_id  # its map starts at seq 6
+    assert j.stats()["n_joined"] == len(rest)
+
+
+def test_sequential_still_joins_a_submap_in_the_frame_of_an_earlier_pose(maps):
+    j = Joiner(JoinMethod.SEQUENTIAL)
+    for seq, m in enumerate(maps[:3], start=1):
+        j.offer(m, seq)
+    interior = int(maps[1].pose_ids[0])  # in the map, but not its end
+    again = change_frame(maps[1], interior).replace(name="again", end_id=interior)  # maps[1] seen from there
+    assert not j.state.chains[0].continued_by(again)
+    assert j.offer(again, 4) == [4] and len(j.state.chains) == 1  # the strategy takes it: no island
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.ONLINE_DC, JoinMethod.SEQUENTIAL])
+def test_chains_that_no_longer_grow_are_joined_into_one_and_the_map_stays_exact(mode):
+    """Noise-free maps (Lemma 1's setting): however the islands are joined, the map is the truth."""
+    world = make_world(2, 30, 40, np.random.default_rng(41))
+    maps = exact_local_maps(world, np.random.default_rng(42), poses_per_map=2, sensor_range=8.0)
+    j = Joiner(mode)
+    for seq, m in enumerate(maps, start=1):
+        if seq not in (4, 9):  # two submaps lost: three chains, the first two no longer grow
+            j.offer(m, seq)
+    j.flush()
+    assert _sizes(j) == [(0, len(maps) - 2)]
+    assert len(j.state.chains) == 2 and j.state.stream().chain == 1  # chains 0 and 1 joined into one
+    joined = global_result(j.state, "first_pose")
+    truth = run_join(maps, JoinMethod.ONLINE_DC).result  # exact: every map is the truth in its frame
+    truth = change_frame(truth, joined.frame_id)
+    for i in range(joined.n_vars):
+        k = int(joined.keys[i])
+        if truth.index_of(k) is None:
+            continue
+        diff = joined.x[joined.scalar_slice(i)] - truth.x[truth.scalar_slice(truth.index_of(k))]
+        np.testing.assert_allclose(np.r_[diff[:2], np.sin(diff[2:])], 0.0, atol=1e-8)

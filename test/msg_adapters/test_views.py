@@ -1,0 +1,67 @@
+"""Pose, covariance and transform conversions of msg_adapters.views, by their definitions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Time
+from scipy.spatial.transform import Rotation
+
+from linear_slam_ros.core.geometry import rot3
+from msg_adapters.views import pose_with_covariance_msg, ros_pose_covariance, transform_msg
+
+STAMP = Time(sec=12, nanosec=345)
+
+
+def _spd(n: int, rng: np.random.Generator) -> np.ndarray:
+    a = rng.normal(size=(n, n))
+    return a @ a.T + n * np.eye(n)
+
+
+def test_2d_covariance_fills_x_y_yaw_and_leaves_z_roll_pitch_zero(rng):
+    cov = _spd(3, rng)
+    out = ros_pose_covariance(2, cov).reshape(6, 6)
+    rows = [0, 1, 5]
+    np.testing.assert_array_equal(out[np.ix_(rows, rows)], cov)
+    out[np.ix_(rows, rows)] = 0.0
+    assert not out.any()
+
+
+def test_3d_covariance_is_reordered_to_roll_pitch_yaw(rng):
+    cov = _spd(6, rng)  # x y z alpha beta gamma: alpha is the yaw, gamma the roll
+    out = ros_pose_covariance(3, cov).reshape(6, 6)
+    np.testing.assert_array_equal(out[:3, :3], cov[:3, :3])
+    assert out[5, 5] == cov[3, 3] and out[4, 4] == cov[4, 4] and out[3, 3] == cov[5, 5]
+    assert out[0, 5] == cov[0, 3] and out[3, 5] == cov[5, 3]
+    np.testing.assert_array_equal(out, out.T)
+
+
+def test_3d_angles_are_ros_yaw_pitch_roll(rng):
+    pose = np.array([1.0, -2.0, 0.5, 0.3, -0.2, 0.1])
+    msg = pose_with_covariance_msg(3, pose, _spd(6, rng), "map", STAMP)
+    q = msg.pose.pose.orientation
+    rot = Rotation.from_quat([q.x, q.y, q.z, q.w])
+    np.testing.assert_allclose(rot.as_matrix(), rot3(pose[3:]).T, atol=1e-15)
+    np.testing.assert_allclose(rot.as_euler("ZYX"), pose[3:], atol=1e-14)  # [yaw, pitch, roll] = [alpha, beta, gamma]
+
+
+def test_pose_with_covariance_message_and_unknown_covariance(rng):
+    cov = _spd(3, rng)
+    msg = pose_with_covariance_msg(2, np.array([1.0, 2.0, 0.5]), cov, "world", STAMP)
+    assert msg.header.frame_id == "world" and (msg.header.stamp.sec, msg.header.stamp.nanosec) == (12, 345)
+    assert (msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z) == (1.0, 2.0, 0.0)
+    assert 2.0 * np.arctan2(msg.pose.pose.orientation.z, msg.pose.pose.orientation.w) == pytest.approx(0.5)
+    assert np.array(msg.pose.covariance).reshape(6, 6)[5, 5] == cov[2, 2]
+    unknown = pose_with_covariance_msg(2, np.zeros(3), None, "world", STAMP)
+    assert unknown.pose.covariance[0] == -1.0 and not np.array(unknown.pose.covariance)[1:].any()
+
+
+def test_transform_maps_child_coordinates_into_the_parent_frame():
+    pose = np.array([3.0, 4.0, np.pi / 2])  # the robot at (3, 4) facing +y
+    t = transform_msg(2, pose, "map", "base_link", STAMP)
+    assert (t.header.frame_id, t.child_frame_id) == ("map", "base_link")
+    assert (t.header.stamp.sec, t.header.stamp.nanosec) == (12, 345)
+    r = t.transform.rotation
+    ahead = Rotation.from_quat([r.x, r.y, r.z, r.w]).apply([1.0, 0.0, 0.0])  # 1 m ahead of the robot
+    tr = t.transform.translation
+    np.testing.assert_allclose(ahead + [tr.x, tr.y, tr.z], [3.0, 5.0, 0.0], atol=1e-15)

@@ -1,0 +1,79 @@
+"""The refiner process: its result equals the offline refine once the stream ends; it stops cleanly on stop and reset."""
+
+from __future__ import annotations
+
+import queue
+import time
+
+import pytest
+
+import linear_slam_ros.evaluation.city  # noqa: F401 - registers synthetic:NAME
+from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.evaluation.nonlinear import refine
+from linear_slam_ros.evaluation.runner import run_join
+from linear_slam_ros.io.datasets import read_dataset
+from linear_slam_ros.refinement.online import LinearEstimate, Submission
+from linear_slam_ros.refinement.worker import Published, RefineWorker, SinkSpec
+
+
+@pytest.fixture(scope="module")
+def city() -> tuple[LocalMap, ...]:
+    return read_dataset("synthetic:city2d-200@5").maps
+
+
+def _wait_for(results: queue.Queue[Published], done, timeout: float = 60.0) -> list[Published]:  # type: ignore[no-untyped-def]
+    got: list[Published] = []
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            pub = results.get(timeout=0.5)
+        except queue.Empty:
+            continue
+        got.append(pub)
+        if done(pub):
+            return got
+    raise AssertionError(f"no matching publication within {timeout} s ({len(got)} received)")
+
+
+def test_worker_reaches_the_offline_optimum_then_stops_cleanly_on_reset_and_stop(city: tuple[LocalMap, ...]) -> None:
+    import multiprocessing
+
+    results = multiprocessing.get_context("spawn").Queue()
+    worker = RefineWorker(SinkSpec("linear_slam_ros.refinement.worker:queue_sink", {"out": results}))
+    try:
+        first_pid = worker.pid
+        for seq, m in enumerate(city, start=1):
+            worker.submit(Submission(seq, m, time.monotonic()))
+        linear = run_join(city, "online-dc").result
+        worker.linear(LinearEstimate.of_map(linear, len(city)))
+        got = _wait_for(results, lambda p: p.refined is not None and p.refined.n_submaps == len(city) and p.refined.converged)
+        final = got[-1].refined
+        assert final is not None
+        offline = refine(linear, city)
+        assert abs(final.chi2 - offline.chi2) <= 1e-8 * offline.chi2
+        assert got[-1].cpu_seconds > 0
+
+        # reset: the process ends cleanly (exit code 0), a fresh one starts and knows nothing of the old stream
+        assert worker.reset() == 0
+        assert worker.alive and worker.pid != first_pid
+        _wait_for(results, lambda p: p.final)  # the old child's last word
+        worker.submit(Submission(1, city[0], time.monotonic()))
+        after = _wait_for(results, lambda p: p.refined is not None and p.refined.converged)
+        assert after[-1].refined is not None and after[-1].refined.n_submaps == 1
+    finally:
+        code = worker.stop()
+    assert code == 0 and not worker.alive and worker.exitcodes == [0, 0]
+    assert worker.stop() is None  # idempotent
+
+
+def test_stop_interrupts_a_round_in_progress(city: tuple[LocalMap, ...]) -> None:
+    import multiprocessing
+
+    results = multiprocessing.get_context("spawn").Queue()
+    worker = RefineWorker(SinkSpec("linear_slam_ros.refinement.worker:queue_sink", {"out": results}))
+    for seq, m in enumerate(city, start=1):  # no linear estimate: a chained start, several steps to go
+        worker.submit(Submission(seq, m, time.monotonic()))
+    _wait_for(results, lambda p: p.refined is not None)  # it is working
+    t0 = time.monotonic()
+    assert worker.stop(timeout=20.0) == 0
+    assert time.monotonic() - t0 < 10.0

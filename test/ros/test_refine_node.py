@@ -1,0 +1,96 @@
+"""The joiner node with ``refine:=true``: ``global_map_refined`` reaches the offline optimum once the stream ends, and
+``~/reset`` and shutdown end the refiner process cleanly (no orphan left behind)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from std_srvs.srv import Trigger
+
+from linear_slam_ros.evaluation.nonlinear import refine
+from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.runner import run_join
+from linear_slam_ros.ros.bag_from_dataset import load_source
+from linear_slam_ros.ros.bagio import read_messages
+from linear_slam_ros.ros.demo import decode_refined_map
+from linear_slam_ros.ros.spin import LatestMessage, spin_until
+from ros_support import REPO
+
+N_MAPS = 40  # the first VicPark200 submaps (features and poses; loop closures within them)
+
+
+def _refiner_children(parent: int) -> list[int]:
+    """Process ids of the ``multiprocessing`` spawn children of ``parent`` that run the refiner."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+            cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:  # ended meanwhile
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == parent and fields[0] != "Z" and "spawn_main" in cmdline:
+            found.append(int(entry.name))
+    return found
+
+
+def _running(pid: int) -> bool:
+    """Whether ``pid`` is a live process (a zombie counts as ended)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def _ended_within(pid: int, seconds: float) -> bool:
+    deadline = time.monotonic() + seconds
+    while _running(pid):
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+def test_refined_map_reaches_offline_optimum_and_refiner_stops_on_reset_and_shutdown(node, start_joiner) -> None:
+    bag = REPO / "bags" / "vicpark200"
+    if not (bag / "metadata.yaml").exists():
+        pytest.skip("the committed bag bags/vicpark200 is missing")
+    records = list(read_messages(bag))[:N_MAPS]
+    maps = load_source(bag).maps[:N_MAPS]
+    joiner = start_joiner(refine="true", publish_rate=20.0)
+    topic = joiner.topic("global_map_refined")
+    with LatestMessage(node, topic, decode_refined_map) as refined:
+        # the refiner process is up (its latched empty map) before the stream starts
+        assert refined.wait(lambda r: True, 20.0, joiner.process), "no global_map_refined from the refiner process"
+        children = _refiner_children(joiner.process.pid)
+        assert len(children) == 1, f"refiner processes of the joiner: {children}"
+        first = children[0]
+        joiner.play(node, records)
+        done = refined.wait(lambda r: r[0].n_submaps == N_MAPS and r[1].get("converged") == 1.0, 30.0, joiner.process)
+        assert done, f"no converged global_map_refined of {N_MAPS} submaps (last: {refined.value and refined.value[1]})"
+        message, segment = refined.value
+
+    offline = refine(run_join(maps, "online-dc").result, maps)
+    assert abs(segment["chi2"] - offline.chi2) <= 1e-8 * offline.chi2
+    assert abs(chi2(message.local_map, maps) - offline.chi2) <= 1e-8 * offline.chi2  # the published estimate itself
+    assert segment["lag_s"] >= 0 and segment["cpu_s"] > 0
+
+    client = node.create_client(Trigger, joiner.topic("joiner/reset"))  # the node's ~/reset
+    assert client.wait_for_service(timeout_sec=10.0)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(node, future.done, 20.0) and future.result().success
+    assert _ended_within(first, 5.0), "the refiner process outlived ~/reset"
+    assert spin_until(node, lambda: len(_refiner_children(joiner.process.pid)) == 1, 10.0), "no fresh refiner after ~/reset"
+    second = _refiner_children(joiner.process.pid)[0]
+    assert second != first
+
+    code, out = joiner.stop()
+    assert code == 0, out[-3000:]
+    assert _ended_within(second, 5.0), f"refiner process {second} left behind after shutdown"
+    assert out.count("refiner process restarted (the old one's exit code 0)") == 1, out[-3000:]  # ~/reset: clean
+    assert out.count("refiner process stopped (exit code 0)") == 1, out[-3000:]  # shutdown: clean

@@ -19,6 +19,7 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -100,6 +101,48 @@ def _positive_definite(factor: _Factor) -> bool:
     return bool(np.all(x[p[:n]] > 0))
 
 
+def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray]:
+    """Return ``(n, indptr, indices, data)`` of ``matrix`` as sorted CSC in CHOLMOD's types."""
+    csc = sp.csc_matrix(matrix)
+    csc.sort_indices()
+    indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
+    indices = np.ascontiguousarray(csc.indices, dtype=np.int64)
+    return csc.shape[0], indptr, indices, np.ascontiguousarray(csc.data, dtype=np.float64)
+
+
+def _structs(
+    n: int, indptr: npt.NDArray[np.int64], indices: npt.NDArray[np.int64], data: FloatArray, b: FloatArray
+) -> tuple[_Sparse, _Dense]:
+    """CHOLMOD's views of a symmetric matrix (upper triangle read) and of a Fortran-ordered right-hand side.
+
+    They point into the arrays: the caller keeps them alive while CHOLMOD uses the views.
+    """
+    ncol = 1 if b.ndim == 1 else b.shape[1]
+    a_struct = _Sparse(
+        n, n, data.size, indptr.ctypes.data, indices.ctypes.data, None, data.ctypes.data, None,
+        1, _LONG, _REAL, _DOUBLE, 1, 1,
+    )
+    return a_struct, _Dense(n, ncol, n * ncol, n, b.ctypes.data, None, _REAL, _DOUBLE)
+
+
+def _solve(lib: Any, factor: Any, b_struct: _Dense, b: FloatArray, common: Any) -> FloatArray:
+    """Solve with a computed factor; return the solution shaped as ``b`` (CHOLMOD's copy freed).
+
+    Raises:
+        SolverError: CHOLMOD could not solve.
+    """
+    n, ncol = b_struct.nrow, b_struct.ncol
+    solution = lib.cholmod_l_solve(_SYS_A, factor, ctypes.byref(b_struct), common)
+    if not solution:
+        raise SolverError(f"CHOLMOD could not solve a {n}x{n} system")
+    try:
+        out_ptr = ctypes.cast(solution.contents.x, ctypes.POINTER(ctypes.c_double))
+        x = np.ctypeslib.as_array(out_ptr, shape=(ncol, n)).T.copy()
+    finally:
+        lib.cholmod_l_free_dense(ctypes.byref(solution), common)
+    return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
+
+
 def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     """Solve ``matrix @ x = rhs`` for a sparse symmetric positive-definite ``matrix`` by CHOLMOD.
 
@@ -114,42 +157,24 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     """
     if _LIB is None:
         raise SolverError("CHOLMOD (libcholmod) is not installed")
-    csc = sp.csc_matrix(matrix)
-    csc.sort_indices()
-    n = csc.shape[0]
-    indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
-    indices = np.ascontiguousarray(csc.indices, dtype=np.int64)
-    data = np.ascontiguousarray(csc.data, dtype=np.float64)
+    n, indptr, indices, data = _csc_arrays(matrix)
     b = np.asfortranarray(rhs, dtype=np.float64)
-    ncol = 1 if b.ndim == 1 else b.shape[1]
-    a_struct = _Sparse(
-        n, n, data.size, indptr.ctypes.data, indices.ctypes.data, None, data.ctypes.data, None,
-        1, _LONG, _REAL, _DOUBLE, 1, 1,
-    )
-    b_struct = _Dense(n, ncol, n * ncol, n, b.ctypes.data, None, _REAL, _DOUBLE)
+    a_struct, b_struct = _structs(n, indptr, indices, data, b)
     common = ctypes.create_string_buffer(_COMMON_BYTES)
     lib = _LIB
     lib.cholmod_l_start(common)
     factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), common)
-    solution = ctypes.POINTER(_Dense)()
     try:
         if not factor:
             raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
         lib.cholmod_l_factorize(ctypes.byref(a_struct), factor, common)
         if not _positive_definite(factor.contents):
             raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        solution = lib.cholmod_l_solve(_SYS_A, factor, ctypes.byref(b_struct), common)
-        if not solution:
-            raise SolverError(f"CHOLMOD could not solve a {n}x{n} system")
-        out_ptr = ctypes.cast(solution.contents.x, ctypes.POINTER(ctypes.c_double))
-        x = np.ctypeslib.as_array(out_ptr, shape=(ncol, n)).T.copy()
+        return _solve(lib, factor, b_struct, b, common)
     finally:
-        if solution:
-            lib.cholmod_l_free_dense(ctypes.byref(solution), common)
         if factor:
             lib.cholmod_l_free_factor(ctypes.byref(factor), common)
         lib.cholmod_l_finish(common)
-    return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
 
 
 def _union_pattern(
@@ -195,14 +220,8 @@ class ReusedAnalysis:
         if _LIB is None:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
         lib = _LIB
-        csc = sp.csc_matrix(matrix)
-        csc.sort_indices()
-        n = csc.shape[0]
-        indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
-        indices = np.ascontiguousarray(csc.indices, dtype=np.int64)
-        data = np.ascontiguousarray(csc.data, dtype=np.float64)
+        n, indptr, indices, data = _csc_arrays(matrix)
         b = np.asfortranarray(rhs, dtype=np.float64)
-        ncol = 1 if b.ndim == 1 else b.shape[1]
         within = self._within_pattern(n, indptr, indices, data)
         if within is None:  # entries the kept pattern lacks: analyse its union with this one (or this one)
             kept = self._pattern
@@ -214,11 +233,7 @@ class ReusedAnalysis:
             within = self._within_pattern(n, indptr, indices, data)
             assert within is not None
         indptr, indices, data = within  # the kept pattern, this matrix's entries in it (explicit zeros elsewhere)
-        a_struct = _Sparse(
-            n, n, data.size, indptr.ctypes.data, indices.ctypes.data, None, data.ctypes.data, None,
-            1, _LONG, _REAL, _DOUBLE, 1, 1,
-        )
-        b_struct = _Dense(n, ncol, n * ncol, n, b.ctypes.data, None, _REAL, _DOUBLE)
+        a_struct, b_struct = _structs(n, indptr, indices, data, b)
         if self._factor is None:
             if self._common is None:
                 self._common = ctypes.create_string_buffer(_COMMON_BYTES)
@@ -233,16 +248,9 @@ class ReusedAnalysis:
         if not _positive_definite(self._factor.contents):
             self._free_factor()  # a failed factorisation is not reused (the pattern is)
             raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        solution = lib.cholmod_l_solve(_SYS_A, self._factor, ctypes.byref(b_struct), self._common)
-        if not solution:
-            raise SolverError(f"CHOLMOD could not solve a {n}x{n} system")
-        try:
-            out_ptr = ctypes.cast(solution.contents.x, ctypes.POINTER(ctypes.c_double))
-            x = np.ctypeslib.as_array(out_ptr, shape=(ncol, n)).T.copy()
-        finally:
-            lib.cholmod_l_free_dense(ctypes.byref(solution), self._common)
+        x = _solve(lib, self._factor, b_struct, b, self._common)
         self.solves += 1
-        return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
+        return x
 
     def _within_pattern(
         self, n: int, indptr: npt.NDArray[np.int64], indices: npt.NDArray[np.int64], data: FloatArray,

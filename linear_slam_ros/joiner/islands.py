@@ -29,12 +29,17 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
+
 from linear_slam_ros.core.errors import FrameError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.joining.islands import Link, find_link, merge_maps
 
 logger = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
 
 MAIN_ISLAND = 0
 """Label of the main island (the one holding the first chain)."""
@@ -125,6 +130,8 @@ class IslandCache:
         self._keys: collections.OrderedDict[Any, tuple[Any, Any]] = collections.OrderedDict()
         self._sizes = {id(self._results): results, id(self._keys): keys}
         self._lock = threading.Lock()
+        self.anchors: dict[int, FloatArray] = {}
+        """Pose (map frame) of each main-island chain's first pose in the last joined main map."""
 
     def _get(self, table: collections.OrderedDict[Any, tuple[Any, Any]], key: Any, owner: Any, make: Callable[[], Any]) -> Any:
         with self._lock:

@@ -37,6 +37,7 @@ from linear_slam_ros.joiner.islands import (
 from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.background import MergeWorker
+from linear_slam_ros.joining.chain import compose
 from linear_slam_ros.joining.gate import GateResult, gate_submap
 
 logger = logging.getLogger(__name__)
@@ -271,7 +272,20 @@ def island_map(state: JoinerState, label: int) -> Any | None:
     strategy = state.strategy
     if len(state.chains) == 1:  # no islands: nothing to cache
         return strategy.result(state.joined) if label == MAIN_ISLAND else None
-    return island_result(state.chains, label, strategy.result, CACHE)
+    joined = island_result(state.chains, label, strategy.result, CACHE)
+    if label == MAIN_ISLAND and isinstance(joined, LocalMap) and state.first_pose_id is not None:
+        _record_anchors(state, joined)
+    return joined
+
+
+def _record_anchors(state: JoinerState, joined: LocalMap) -> None:
+    """Keep where the main island's map puts each of its chains' first poses, in ``map_frame`` (for :func:`current_pose`)."""
+    first = state.first_pose_id
+    assert first is not None
+    in_map = joined if joined.frame_id == first else estimate_in_frame(joined, first)
+    for chain in state.chains:
+        if chain.island == MAIN_ISLAND and (chain.first_pose_id == first or in_map.has_pose(chain.first_pose_id)):
+            CACHE.anchors[chain.first_pose_id] = in_map.pose(chain.first_pose_id)
 
 
 def robot_poses(state: JoinerState, joined: LocalMap) -> dict[str, FloatArray]:
@@ -296,13 +310,24 @@ def robot_poses(state: JoinerState, joined: LocalMap) -> dict[str, FloatArray]:
 def current_pose(state: JoinerState, robot: str = "") -> PoseEstimate | None:
     """Return ``robot``'s newest end pose in ``map_frame`` (the first pose's frame), cheaply.
 
-    ``None`` when it is not known cheaply: before the first submap, when the robot's newest
-    submap is in another chain than the first one (its pose in ``map_frame`` then comes with the
-    joined map), or when the strategy has no cheap current pose.
+    On the first chain: chained along it (the strategy's ``current_pose``). On another chain of
+    the main island (after a gap): the robot's motion along its chain since the chain's first
+    pose, composed with where the last joined map of the main island put that first pose
+    (:func:`island_map` keeps it). ``None`` when it is not known cheaply: before the first
+    submap, on a chain no joined map has placed yet or in another island, or when the strategy
+    has no cheap current pose.
     """
-    if state.first_pose_id is None or state.stream(robot).chain != 0:
+    chain_index = state.stream(robot).chain
+    if state.first_pose_id is None or chain_index < 0:
         return None
-    return state.strategy.current_pose(state.joined, state.first_pose_id)
+    chain = state.chains[chain_index]
+    if chain_index == 0:
+        return state.strategy.current_pose(chain.joined, state.first_pose_id)
+    anchor = CACHE.anchors.get(chain.first_pose_id) if chain.island == MAIN_ISLAND else None
+    along = state.strategy.current_pose(chain.joined, chain.first_pose_id) if anchor is not None else None
+    if anchor is None or along is None or state.dim is None:
+        return None
+    return along[0], compose(state.dim, anchor, along[1])
 
 
 @dataclass(frozen=True)
@@ -406,6 +431,7 @@ class Joiner:
             raise ConfigError(f"gate_probability={self.gate_probability!r} must be in [0, 1) (0 or None: no gate)")
         self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
+        CACHE.anchors.clear()  # they place chains of a joiner's map: one joiner per process
 
     def _scheduled(self, state: JoinerState) -> JoinerState:
         """Return ``state`` set to defer its large joins as this joiner is configured to."""
@@ -418,6 +444,7 @@ class Joiner:
         if self.worker is not None:
             self.worker.clear()
         self.state = self._scheduled(new_state(self.state.method, self.state.map_type))
+        CACHE.anchors.clear()
         self.rejected.clear()
         self.join_seconds.clear()
         self.gated.clear()
@@ -453,6 +480,7 @@ class Joiner:
         if self.worker is not None:
             self.worker.clear()
         self.state = self._scheduled(saved.state)
+        CACHE.anchors.clear()
         self.rejected = collections.Counter(dict(saved.rejected))
         self._pending = collections.defaultdict(dict)
         for seq, submap in saved.pending:

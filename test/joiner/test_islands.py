@@ -210,3 +210,24 @@ def test_chains_that_no_longer_grow_are_joined_into_one_and_the_map_stays_exact(
             continue
         diff = joined.x[joined.scalar_slice(i)] - truth.x[truth.scalar_slice(truth.index_of(k))]
         np.testing.assert_allclose(np.r_[diff[:2], np.sin(diff[2:])], 0.0, atol=1e-8)
+
+
+def test_after_a_gap_the_fresh_pose_continues_from_where_the_last_map_put_the_chain():
+    """Noise-free maps: the composed pose equals the joined map's end pose exactly."""
+    world = make_world(2, 30, 40, np.random.default_rng(51))
+    maps = exact_local_maps(world, np.random.default_rng(52), poses_per_map=2, sensor_range=8.0)
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:8], start=1):
+        if seq != 4:
+            j.offer(m, seq)
+    j.flush()
+    assert j.state.stream().chain == 1 and _sizes(j) == [(0, 7)]
+    assert current_pose(j.state) is None  # no joined map has placed the new chain yet
+    global_result(j.state)  # an output: the main island's map places chain 1's first pose
+    for seq in range(9, 12):
+        j.offer(maps[seq - 1], seq)
+        end_id, pose = current_pose(j.state)
+        truth = global_result(j.state, "first_pose")
+        assert end_id == maps[seq - 1].end_id
+        diff = pose - truth.pose(end_id)
+        np.testing.assert_allclose(np.r_[diff[:2], np.sin(diff[2])], 0.0, atol=1e-9)

@@ -10,9 +10,8 @@ collinear in 3D: :func:`~linear_slam_ros.joining.islands.find_link`) belong to o
 the joined map of an island is its chains' results joined through those links, in closed form
 (:func:`~linear_slam_ros.joining.islands.merge_maps`). Links are found as submaps arrive (the
 new submap's variables against the other islands': :func:`link_islands`); an island's chains are
-joined when its map is asked for (:func:`island_result`), and those that no longer grow are
-joined into one chain once (:func:`collapse_frozen`), so an island holds at most one chain per
-robot plus one.
+joined when its map is asked for (:func:`island_result`), and pairs of similar size that no
+longer grow are joined into one chain (:func:`collapse_frozen`).
 
 The *main island* is the one holding the first chain (the first submap joined, whose frame pose
 is ``map_frame``'s); ``global_map`` carries it. An island's label is the index its first chain

@@ -14,8 +14,10 @@ joined when its map is asked for (:func:`island_result`), and pairs of similar s
 longer grow are joined into one chain (:func:`collapse_frozen`).
 
 The *main island* is the one holding the first chain (the first submap joined, whose frame pose
-is ``map_frame``'s); ``global_map`` carries it. An island's label is the index its first chain
-had when it started; linked islands take the smaller, so the main island's label is 0.
+is ``map_frame``'s); ``global_map`` carries it. An island's label is the index of its first
+chain (a new island's is its chain's index; linked islands take the smaller; when chains are
+joined and renumbered, the labels follow: :func:`collapse_frozen`), so the main island's label is 0
+and no two islands share one.
 """
 
 from __future__ import annotations
@@ -281,7 +283,25 @@ def collapse_frozen(
         return chains, list(range(len(chains)))
     kept = [i for i, c in enumerate(out) if c is not None]
     index = {old: new for new, old in enumerate(kept)}
-    return [c for c in out if c is not None], [index.get(i, -1) for i in range(len(chains))]
+    return _first_chain_labels([c for c in out if c is not None]), [index.get(i, -1) for i in range(len(chains))]
+
+
+def _first_chain_labels(chains: list[Chain]) -> list[Chain]:
+    """Relabel each island with the index of its first chain (after chains were joined and renumbered).
+
+    A new island's label is the index of its chain, the number of chains before it
+    (:func:`~linear_slam_ros.joiner.joiner.join_step`): that label must not be held by another
+    island, so an island's label never exceeds its chains' indices. Joining two chains removes
+    one and shifts the later ones down; without relabelling, an island whose chains all moved
+    down would keep a label the next new island takes too, and the two would count as linked.
+    The main island keeps label 0 (chain 0 is never the one removed).
+    """
+    first: dict[int, int] = {}
+    for i, c in enumerate(chains):
+        first.setdefault(c.island, i)
+    if all(label == i for label, i in first.items()):
+        return chains
+    return [c if first[c.island] == c.island else _relabel(c, first[c.island]) for c in chains]
 
 
 def _similar_linked_pair(
@@ -315,11 +335,13 @@ def island_result(
     """Return the joined map of island ``label``, in the frame of its newest end pose.
 
     One chain: its result. Several: the chains that no longer grow are joined first (the first
-    chain's result, then each other chain as soon as it links with what is joined so far:
-    :func:`find_link`, :func:`merge_maps`), and that part is cached; then the newest chain, then
-    what links only through it. So while one robot extends an island, each output costs one join
-    more than without islands. A chain that links with none is left out, with a warning (the links
-    found on arrival make this rare: only when a chain was linked through the union of others).
+    chain's result, then each other chain as soon as it links with what is joined so far; chains
+    that link only with each other are joined with each other first: :func:`join_linked`), and
+    that part is cached; then the newest chain, then what links only through it. So while one
+    robot extends an island, each output costs one join more than without islands. A chain that
+    links with no other part is left out, with a warning (the links found on arrival make this
+    rare: a union of chains that only the nonlinear problem would fix, e.g. three pairwise sharing
+    one feature each in 2D).
     """
     members = [c for c in chains if c.island == label]
     if not members:
@@ -329,20 +351,20 @@ def island_result(
     newest = max(members, key=lambda c: c.stamp)
     frozen = [c for c in members if c is not newest]
 
-    def fold_frozen() -> tuple[LocalMap, tuple[Chain, ...]]:
-        joined, rest = _fold(cache.result(result_of, frozen[0]), [(c, result_of(c.joined)) for c in frozen[1:]])
-        return joined, tuple(c for c, _ in rest)
+    def join_frozen() -> list[tuple[tuple[Chain, ...], LocalMap]]:
+        return join_linked([((c,), cache.result(result_of, c) if i == 0 else result_of(c.joined)) for i, c in enumerate(frozen)])
 
     def make() -> LocalMap:
-        prefix, unlinked = cache.island("frozen", tuple(c.joined for c in frozen), fold_frozen)
-        parts = [(newest, cache.result(result_of, newest))] + [(c, result_of(c.joined)) for c in unlinked]
-        joined, rest = _fold(prefix, parts)
+        parts = cache.island("frozen", tuple(c.joined for c in frozen), join_frozen)
+        joined_parts = join_linked([parts[0], ((newest,), cache.result(result_of, newest)), *parts[1:]])
+        joined = joined_parts[0][1]
+        rest = [c for group, _ in joined_parts[1:] for c in group]
         if rest:
             logger.warning(
                 "island %d: %d chain(s) (first poses %s) link with no other part and are left out of its map",
                 label,
                 len(rest),
-                [c.first_pose_id for c, _ in rest],
+                [c.first_pose_id for c in rest],
             )
         end = newest.end_id
         if end is not None and end != joined.frame_id:
@@ -353,18 +375,49 @@ def island_result(
     return cache.island("island", tuple(c.joined for c in members), make)
 
 
-def _fold(joined: LocalMap, parts: list[tuple[Chain, LocalMap | None]]) -> tuple[LocalMap, list[tuple[Chain, LocalMap | None]]]:
-    """Join ``parts`` into ``joined`` one at a time, each as soon as it links; return what never linked."""
-    rest = list(parts)
-    progress = True
-    while rest and progress:
-        progress = False
-        for i, (_, part) in enumerate(rest):
-            link: Link | None = find_link(joined, part) if part is not None else None
-            if link is not None:
-                assert part is not None
-                joined = merge_maps(joined, part, link, None)
-                del rest[i]
-                progress = True
-                break
-    return joined, rest
+def join_linked(parts: Sequence[tuple[tuple[Chain, ...], LocalMap | None]]) -> list[tuple[tuple[Chain, ...], LocalMap]]:
+    """Join maps into the first, each as soon as it links; parts that link only with each other are joined first.
+
+    Each join is closed form (:func:`~linear_slam_ros.joining.islands.find_link`,
+    :func:`~linear_slam_ros.joining.islands.merge_maps`): a common pose, else the frame of common
+    features. The first map grows: the earliest other map that links with it is joined into it,
+    again and again. When none does, two of the others that link with each other are joined (the
+    pair sharing the most variables; ties: the earlier), since their union may link where neither
+    does alone (common features spread over several chains); then the first map grows again.
+    Links between the others are found once per pair.
+
+    Args:
+        parts: ``(chains, map)``: each map with the chains it joins (a map of ``None`` is dropped).
+
+    Returns:
+        The parts that remain: the grown first one (its map holds everything that links with it),
+        then the others in their order in ``parts``, each with the chains it joins.
+    """
+    alive: dict[int, tuple[tuple[Chain, ...], LocalMap]] = {i: (g, m) for i, (g, m) in enumerate(parts) if m is not None}
+    if not alive:
+        return []
+    first = min(alive)
+    pair_links: dict[tuple[int, int], Link | None] = {}
+
+    def merge(i: int, k: int, link: Link) -> None:
+        (group_i, map_i), (group_k, map_k) = alive.pop(i), alive.pop(k)
+        alive[i] = (group_i + group_k, merge_maps(map_i, map_k, link, None))
+        for pair in [pair for pair in pair_links if i in pair or k in pair]:
+            del pair_links[pair]
+
+    while len(alive) > 1:
+        grow = next(((k, lk) for k in sorted(alive) if k != first and (lk := find_link(alive[first][1], alive[k][1]))), None)
+        if grow is not None:
+            merge(first, *grow)
+            continue
+        others = sorted(k for k in alive if k != first)
+        for x, i in enumerate(others):
+            for k in others[x + 1 :]:
+                if (i, k) not in pair_links:
+                    pair_links[(i, k)] = find_link(alive[i][1], alive[k][1])
+        linked = [(pair, lk) for pair, lk in pair_links.items() if lk is not None]
+        if not linked:
+            break
+        (i, k), link = min(linked, key=lambda e: (-e[1].n_common, e[0]))
+        merge(i, k, link)
+    return [alive[i] for i in sorted(alive)]

@@ -12,11 +12,12 @@ from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world, noisy_local_maps
+from linear_slam_ros.joiner.islands import join_linked
 from linear_slam_ros.joiner.joiner import Joiner, current_pose, global_result, island_map
 from linear_slam_ros.joiner.robots import ROBOT_ID_STRIDE, global_pose_id, qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
-from linear_slam_ros.joining.islands import poses_of
+from linear_slam_ros.joining.islands import find_link, poses_of
 
 
 @pytest.fixture(scope="module")
@@ -231,3 +232,69 @@ def test_after_a_gap_the_fresh_pose_continues_from_where_the_last_map_put_the_ch
         assert end_id == maps[seq - 1].end_id
         diff = pose - truth.pose(end_id)
         np.testing.assert_allclose(np.r_[diff[:2], np.sin(diff[2])], 0.0, atol=1e-9)
+
+
+def _assert_exact(joined, truth) -> None:
+    """Every variable of ``joined`` that ``truth`` holds equals it (angles modulo 2 pi)."""
+    truth = change_frame(truth, joined.frame_id)
+    compared = 0
+    for i in range(joined.n_vars):
+        k = truth.index_of(int(joined.keys[i]))
+        if k is None:
+            continue
+        diff = joined.x[joined.scalar_slice(i)] - truth.x[truth.scalar_slice(k)]
+        np.testing.assert_allclose(np.r_[diff[:2], np.sin(diff[2:])], 0.0, atol=1e-8)
+        compared += 1
+    assert compared > 0
+
+
+def test_a_new_island_never_takes_the_label_of_one_that_stays_apart():
+    """Joining two frozen chains renumbers the later ones: the labels follow, so a new island's is fresh.
+
+    Without that, the stranger (label 2) and the chain started after it (index 2, so label 2) shared a
+    label: when the new chain linked with the main island, the stranger was counted in it too.
+    """
+    world = make_world(2, 30, 40, np.random.default_rng(41))
+    maps = exact_local_maps(world, np.random.default_rng(42), poses_per_map=2, sensor_range=8.0)
+    other_world = make_world(2, 12, 10, np.random.default_rng(99))
+    stranger = [m.replace(ids=np.where(m.kinds == FEATURE, m.ids + 1000, m.ids + 500), frame_id=m.frame_id + 500,
+                          end_id=m.end_id + 500) for m in exact_local_maps(other_world, np.random.default_rng(3), 3)[:2]]
+    j = Joiner(JoinMethod.ONLINE_DC)
+    real = [(1, maps[0]), (2, maps[1]), (3, maps[2]), (5, maps[4]), (6, maps[5]), (7, maps[6])]
+    real_after = [(12 + k, maps[11 + k]) for k in range(len(maps) - 11)]
+    for seq, m in [*real, (9, stranger[0]), (10, stranger[1]), *real_after]:
+        j.offer(m, seq)
+    j.flush()
+    n_real = len(real) + len(real_after)
+    assert _sizes(j) == [(0, n_real), (1, 2)]  # the stranger stays apart, and the main island holds every real submap
+    assert [c.island for c in j.state.chains] == [0, 1, 0]  # chains 0 and 1 were joined; labels follow the indices
+    joined = global_result(j.state)
+    held = set(joined.keys.tolist()) | {2 * joined.frame_id}
+    assert all(set(m.keys.tolist()) <= held for _, m in real + real_after)
+    _assert_exact(joined, run_join(maps, JoinMethod.ONLINE_DC).result)
+    _assert_exact(island_map(j.state, 1), run_join(stranger, JoinMethod.ONLINE_DC).result)
+
+
+def test_parts_that_link_only_with_each_other_are_joined_first_and_exactly():
+    """Two submaps that each share one feature with the map (too few in 2D) but a pose with each
+    other: joined with each other first, their union links with the map through two features."""
+    world = make_world(2, 30, 40, np.random.default_rng(61))
+    maps = exact_local_maps(world, np.random.default_rng(62), poses_per_map=2, sensor_range=8.0)
+    truth = run_join(maps, JoinMethod.ONLINE_DC).result  # exact
+    prefix = run_join(maps[:3], JoinMethod.ONLINE_DC).result  # maps[3] is lost: no common pose with maps[4:]
+    x_map, y_map = maps[4], maps[5]
+    f_x = int(np.intersect1d(x_map.feature_ids, prefix.feature_ids)[0])
+    f_y = int(next(f for f in np.intersect1d(y_map.feature_ids, prefix.feature_ids) if f != f_x))
+    renamed = []
+    for m, keep in ((x_map, f_x), (y_map, f_y)):  # every other feature renamed: one common feature each
+        ids = np.where((m.kinds == FEATURE) & (m.ids != keep), m.ids + 1000, m.ids)
+        renamed.append(m.replace(ids=ids))
+    x_map, y_map = renamed
+    assert find_link(prefix, x_map) is None and find_link(prefix, y_map) is None
+    assert find_link(x_map, y_map) is not None and find_link(x_map, y_map).pose_id == x_map.end_id
+    parts = join_linked([(("prefix",), prefix), (("x",), x_map), (("y",), y_map)])  # type: ignore[list-item]
+    assert len(parts) == 1 and sorted(parts[0][0]) == ["prefix", "x", "y"]
+    joined = parts[0][1]
+    assert joined.n_vars == len(set(prefix.keys.tolist()) | set(x_map.keys.tolist()) | set(y_map.keys.tolist())
+                                | {2 * prefix.frame_id, 2 * x_map.frame_id}) - 1  # every variable once, but its frame pose
+    _assert_exact(joined, truth)  # the renamed features are not in the truth: the rest is exact

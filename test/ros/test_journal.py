@@ -13,9 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mcap.writer import CompressionType, IndexType, Writer
 from rosbags.rosbag2 import Reader
 from ruamel.yaml import YAML
 
+from linear_slam_ros.ros import journal as journal_module
 from linear_slam_ros.ros.bagio import read_messages, write_messages
 from linear_slam_ros.ros.journal import (
     METADATA_NAME,
@@ -53,12 +55,12 @@ def _expected(messages: list[tuple[str, bytes, int]], start: int = 0) -> list[Jo
 
 
 def _write_session(folder: Path, messages: list[tuple[str, bytes, int]], close: bool = True) -> tuple[Journal, list[int]]:
-    """Append ``messages`` in a new session; return the journal and the file size after open and after each record."""
+    """Append ``messages`` in a new session; return the journal and the bytes written after open and after each record."""
     journal = Journal.open(folder)
-    ends = [journal.path.stat().st_size]
+    ends = [journal.bytes_written]
     for topic, raw, t in messages:
         journal.append(topic, raw, t)
-        ends.append(journal.path.stat().st_size)  # appended records are with the OS already
+        ends.append(journal.bytes_written)  # appended records are with the OS already
     if close:
         journal.close()
     return journal, ends
@@ -113,6 +115,41 @@ def test_round_trip_across_two_sessions(tmp_path: Path) -> None:
     assert [(r.topic, r.time_ns, r.raw, r.latched) for r in read_messages(folder)] == [
         (topic, t, raw, False) for topic, raw, t in first + second
     ]
+
+
+def test_the_live_file_holds_the_records_mcaps_writer_writes(tmp_path: Path) -> None:
+    """Each record a session copies into its mapped file is byte for byte what mcap's Writer writes for it,
+    and a closed file is the Writer's whole output (summary and footer included)."""
+    messages = _messages(12, 7)
+    journal, ends = _write_session(tmp_path / "j", messages, close=False)
+    live = journal.path.read_bytes()
+    assert not any(live[ends[-1] :])  # then space reserved ahead
+    journal.close()
+
+    class Sink:  # what mcap's Writer writes, with the data section as it stands before finish()
+        def __init__(self) -> None:
+            self.data = bytearray()
+
+        def write(self, b: bytes) -> int:
+            self.data += b
+            return len(b)
+
+        def tell(self) -> int:
+            return len(self.data)
+
+    sink = Sink()
+    writer = Writer(sink, use_chunking=False, compression=CompressionType.NONE, index_types=IndexType.ALL)
+    writer.start(profile="ros2", library=journal_module._LIBRARY)
+    schema = writer.register_schema(name=MSGTYPE, encoding="ros2msg", data=journal_module._MSGDEF.encode())
+    writer.add_metadata("rosbag2", journal_module._rosbag2_metadata("journal_0.mcap"))
+    channels: dict[str, int] = {}
+    for i, (topic, raw, t) in enumerate(messages):
+        if topic not in channels:
+            channels[topic] = writer.register_channel(topic, "cdr", schema, dict(journal_module._CHANNEL_METADATA))
+        writer.add_message(channel_id=channels[topic], log_time=t, data=raw, publish_time=t, sequence=i)
+    assert live[: ends[-1]] == bytes(sink.data)
+    writer.finish()
+    assert (tmp_path / "j" / "journal_0.mcap").read_bytes() == bytes(sink.data)
 
 
 def test_restart_after_a_kill_seals_the_file_and_continues_the_indices(tmp_path: Path) -> None:
@@ -207,21 +244,66 @@ def test_a_truncated_earlier_file_is_tolerated_and_reported(tmp_path: Path) -> N
     )
 
 
-def test_damaged_tail_is_dropped_and_kept_aside_when_sealing(tmp_path: Path) -> None:
+def test_a_zero_tail_is_reserved_space_and_a_damaged_tail_is_kept_aside(tmp_path: Path) -> None:
     messages = _messages(8, 3)
-    journal, _ = _write_session(tmp_path / "live", messages, close=False)
+    journal, ends = _write_session(tmp_path / "live", messages, close=False)
     folder = tmp_path / "crashed"
-    shutil.copytree(tmp_path / "live", folder)
+    shutil.copytree(tmp_path / "live", folder)  # as a kill -9 leaves it: no footer, reserved zero bytes after the records
     journal.close()
-    with open(folder / "journal_0.mcap", "ab") as f:
-        f.write(bytes(4096))  # zeros where a power cut lost unsynced data
+    path = folder / "journal_0.mcap"
+    size = path.stat().st_size
+    assert size > ends[-1] and not any(path.read_bytes()[ends[-1] :])
     contents = read_journal(folder)
     assert [r.raw for r in contents.records] == [m[1] for m in messages]
-    assert contents.problems == ("journal_0.mcap: damaged (invalid record (opcode 0x00)) after record 2 (4096 bytes dropped)",)
+    assert contents.problems == ()  # a crash between records loses nothing
+    assert [(f.closed, f.dropped_bytes) for f in contents.files] == [(False, 0)]
+
+    with open(path, "r+b") as f:
+        f.seek(ends[-1] + 4096)
+        f.write(b"\x05" + bytes(8) + b"stale")  # bytes after a page that a power cut lost
+    contents = read_journal(folder)
+    assert [r.raw for r in contents.records] == [m[1] for m in messages]
+    dropped = size - ends[-1]
+    damaged = f"journal_0.mcap: damaged (invalid record (opcode 0x00)) after record 2 ({dropped} bytes dropped)"
+    assert contents.problems == (damaged,)
     with Journal.open(folder) as resumed:
         assert resumed.next_index == 3
-    assert (folder / "journal_0.mcap.damaged").stat().st_size > 4096
+    assert (folder / "journal_0.mcap.damaged").stat().st_size == size
     assert read_journal(folder).problems == ()
+    assert path.stat().st_size < ends[-1] + 4096  # sealed: the records, the summary and the footer, nothing reserved
+
+
+def test_a_kill_during_any_byte_of_a_mapped_write_drops_only_that_record(tmp_path: Path) -> None:
+    """The storage file is written through a memory map: bytes 1-8 (the record's length), then its body, then
+    its opcode byte. A kill at any instant leaves the bytes copied so far and zeros after them."""
+    folder = tmp_path / "journal"
+    small = serialize(Encoded(("header",), (3,), np.arange(3.0)))
+    messages = [*_messages(11, 4), ("pose_graph", small, T0 + 10**9)]
+    journal, ends = _write_session(folder, messages, close=False)
+    live = journal.path.read_bytes()
+    journal.close()
+    start, stop = ends[-2], ends[-1]
+    body = live[start + 1 : stop]
+    for copied in range(len(body) + 1):  # bytes of the record after its opcode that reached the map
+        image = bytearray(live)
+        image[start:] = bytes(len(live) - start)
+        image[start + 1 : start + 1 + copied] = body[:copied]
+        (folder / "journal_0.mcap").write_bytes(bytes(image))
+        contents = read_journal(folder)
+        assert list(contents.records) == _expected(messages[:-1]), copied
+        if copied:
+            nonzero = len(bytes(image).rstrip(b"\0")) - start
+            assert contents.problems == (
+                f"journal_0.mcap: truncated after record {len(messages) - 2} ({nonzero} bytes dropped)",
+            ), copied
+        else:
+            assert contents.problems == (), copied
+    image[start] = live[start]  # the opcode, last: the record is complete
+    (folder / "journal_0.mcap").write_bytes(bytes(image))
+    assert list(read_journal(folder).records) == _expected(messages)
+    with Journal.open(folder) as resumed:
+        assert resumed.next_index == len(messages)
+    assert [r.raw for r in read_messages(folder)] == [m[1] for m in messages]
 
 
 def test_files_listed_but_missing_or_not_mcap_are_reported(tmp_path: Path) -> None:

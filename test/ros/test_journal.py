@@ -348,6 +348,35 @@ def test_a_folder_that_is_not_a_journal_raises(tmp_path: Path) -> None:
     assert read_journal(empty) == JournalContents(empty, (), (), ())
 
 
+def test_the_mapped_file_grows_and_a_full_disk_stops_appends_cleanly(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(journal_module, "MAPPED_INITIAL_BYTES", 4096)
+    monkeypatch.setattr(journal_module, "MAPPED_GROWTH_MAX_BYTES", 8192)
+    messages = _messages(13, 60, max_values=200)  # about 50 kB: the file grows 4 -> 8 -> 16 -> 24 ... kB
+    journal, ends = _write_session(tmp_path / "j", messages, close=False)
+    assert journal.path.stat().st_size >= ends[-1] > 4 * 8192
+    journal.close()
+    assert list(read_journal(tmp_path / "j").records) == _expected(messages)
+    assert (tmp_path / "j" / "journal_0.mcap").stat().st_size > ends[-1]  # the summary and footer, nothing reserved
+
+    def no_space(fd: int, offset: int, length: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    journal = Journal.open(tmp_path / "j")
+    journal.append(*messages[0])  # in the space reserved at open
+    monkeypatch.setattr(os, "posix_fallocate", no_space)
+    with pytest.raises(JournalError, match=r"cannot append to .*journal_1\.mcap: \[Errno 28\] No space left on device"):
+        for m in messages:
+            journal.append(*m)
+    with pytest.raises(JournalError, match=r"failed \(OSError: .*No space left on device\): restart to continue"):
+        journal.append(*messages[0])
+    journal.close()  # a failed journal closes without writing
+    monkeypatch.undo()
+    contents = read_journal(tmp_path / "j")
+    appended = contents.count - len(messages)
+    assert appended >= 1 and contents.problems == ()
+    assert [r.raw for r in contents.records[len(messages) :]] == [m[1] for m in [messages[0], *messages[: appended - 1]]]
+
+
 def test_fsync_policy(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     real_fsync = os.fsync
     calls: list[int] = []

@@ -40,6 +40,11 @@ logger = logging.getLogger(__name__)
 PARENT_POLL_S = 1.0
 """s, how often an idle child checks that its parent still runs."""
 
+REFINER_NICE = 10
+"""How much lower the child's CPU priority is than the node's (``os.nice``): on a machine with fewer
+cores than busy threads, joining takes the CPU first (a nice-10 process gets about a tenth of a
+core that a nice-0 thread also wants), and the refiner uses what joining leaves."""
+
 NEAR_OPTIMUM = 1e-3
 """Once the stream is idle, a step that lowers χ² by at most this fraction is published (Gauss-Newton's
 next decrease is far smaller: the map is within about this fraction of the optimum)."""
@@ -127,6 +132,10 @@ def serve(
     from linear_slam_ros.core.runtime import set_blas_threads
 
     set_blas_threads(1)  # the joiner has the other core
+    try:
+        os.nice(REFINER_NICE)  # joining first (REFINER_NICE)
+    except OSError as exc:  # a platform or a limit that refuses it: the refiner runs at the node's priority
+        logger.warning("refiner: cannot lower its CPU priority: %s", exc)
     parent = os.getppid()
     sink = sink_spec.build()
     if ready is not None:

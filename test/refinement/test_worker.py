@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import queue
 import time
 
@@ -13,7 +14,7 @@ from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.io.datasets import read_dataset
 from linear_slam_ros.refinement.online import LinearEstimate, Submission
-from linear_slam_ros.refinement.worker import Published, RefineWorker, SinkSpec
+from linear_slam_ros.refinement.worker import REFINER_NICE, Published, RefineWorker, SinkSpec
 
 
 @pytest.fixture(scope="module")
@@ -42,6 +43,9 @@ def test_worker_reaches_the_offline_optimum_then_stops_cleanly_on_reset_and_stop
     worker = RefineWorker(SinkSpec("linear_slam_ros.refinement.worker:queue_sink", {"out": results}))
     try:
         first_pid = worker.pid
+        assert worker.wait_ready(60.0)
+        expected = min(19, os.getpriority(os.PRIO_PROCESS, 0) + REFINER_NICE)
+        assert first_pid is not None and os.getpriority(os.PRIO_PROCESS, first_pid) == expected  # joining first
         for seq, m in enumerate(city, start=1):
             worker.submit(Submission(seq, m, time.monotonic()))
         linear = run_join(city, "online-dc").result

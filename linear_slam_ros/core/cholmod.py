@@ -177,6 +177,62 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
         lib.cholmod_l_finish(common)
 
 
+class Factor:
+    """A CHOLMOD factorisation of one sparse SPD matrix, kept for any number of later solves.
+
+    Not thread-safe; :meth:`close` (or garbage collection) frees CHOLMOD's memory.
+    """
+
+    def __init__(self, matrix: sp.spmatrix | sp.sparray) -> None:
+        """Analyse and factorise ``matrix`` (symmetric, both triangles stored).
+
+        Raises:
+            SolverError: the library is missing, or the matrix is not positive definite.
+        """
+        if _LIB is None:
+            raise SolverError("CHOLMOD (libcholmod) is not installed")
+        self._factor: ctypes._Pointer[_Factor] | None = None
+        self._common: ctypes.Array[ctypes.c_char] | None = ctypes.create_string_buffer(_COMMON_BYTES)
+        self.n, indptr, indices, data = _csc_arrays(matrix)
+        lib = _LIB
+        lib.cholmod_l_start(self._common)
+        a_struct, _ = _structs(self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
+        factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), self._common)
+        if not factor:
+            self.close()
+            raise SolverError(f"CHOLMOD could not analyse a {self.n}x{self.n} system (out of memory?)")
+        self._factor = factor
+        lib.cholmod_l_factorize(ctypes.byref(a_struct), factor, self._common)
+        if not _positive_definite(factor.contents):
+            self.close()
+            raise SolverError(f"information matrix of size {self.n} is not positive definite (CHOLMOD)")
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """Return ``matrix^-1 rhs`` for ``rhs`` of shape ``(n,)`` or ``(n, k)``.
+
+        Raises:
+            SolverError: the factor was closed, or CHOLMOD could not solve.
+        """
+        if self._factor is None or self._common is None or _LIB is None:
+            raise SolverError("CHOLMOD factor used after it was closed")
+        b = np.asfortranarray(rhs, dtype=np.float64)
+        ncol = 1 if b.ndim == 1 else b.shape[1]
+        b_struct = _Dense(self.n, ncol, self.n * ncol, self.n, b.ctypes.data, None, _REAL, _DOUBLE)
+        return _solve(_LIB, self._factor, b_struct, b, self._common)
+
+    def close(self) -> None:
+        """Free the factor and CHOLMOD's workspace (idempotent)."""
+        if self._factor is not None and _LIB is not None and self._common is not None:
+            _LIB.cholmod_l_free_factor(ctypes.byref(self._factor), self._common)
+        self._factor = None
+        if self._common is not None and _LIB is not None:
+            _LIB.cholmod_l_finish(self._common)
+        self._common = None
+
+    def __del__(self) -> None:
+        self.close()
+
+
 def _union_pattern(
     n: int, indptr_a: npt.NDArray[np.int64], indices_a: npt.NDArray[np.int64], indptr_b: npt.NDArray[np.int64],
     indices_b: npt.NDArray[np.int64],

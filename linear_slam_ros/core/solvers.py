@@ -15,6 +15,7 @@ Sparse backends, best first (measured on the joined maps' information matrices, 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Literal
 
 import numpy as np
@@ -140,3 +141,40 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     except RuntimeError as exc:
         raise SolverError(f"sparse LU failed on a {matrix.shape[0]}x{matrix.shape[0]} system: {exc}") from None
     return lu.solve(rhs)
+
+
+SpdSolve = Callable[[FloatArray], FloatArray]
+"""``rhs -> matrix^-1 rhs`` with one factorisation of ``matrix`` kept (see :func:`spd_factor`)."""
+
+
+def spd_factor(matrix: FloatArray | sp.csr_matrix) -> SpdSolve:
+    """Factorise an SPD ``matrix`` once and return its solve, for many right-hand sides given later.
+
+    Dense LAPACK Cholesky up to :data:`DENSE_MAX` scalars (or for a dense matrix); above, CHOLMOD's
+    factor kept by the best backend that can keep one (``libcholmod``, ``sksparse``); with the others
+    each call solves afresh (:func:`solve_sparse_spd`): the same numbers, without the saving.
+
+    Raises:
+        SolverError: the matrix is not positive definite.
+    """
+    n = int(matrix.shape[0])
+    if n <= DENSE_MAX or isinstance(matrix, np.ndarray):
+        dense = np.asarray(matrix, dtype=np.float64) if isinstance(matrix, np.ndarray) else matrix.toarray()
+        try:
+            lower = np.linalg.cholesky(dense)
+        except np.linalg.LinAlgError:
+            raise SolverError(f"information matrix of size {n} is not positive definite") from None
+        return lambda rhs: _solve_lower(lower, _solve_lower(lower, np.asarray(rhs, dtype=np.float64), trans=0), trans=1)
+    backend = backend_name()
+    if backend == "libcholmod":
+        return cholmod.Factor(matrix).solve
+    if backend == "sksparse" and _cholmod_cholesky is not None:
+        try:
+            factor = _cholmod_cholesky(sp.csc_matrix(matrix))
+            if np.any(factor.D() <= 0):
+                raise _NotPD("non-positive pivot")
+        except _NotPD as exc:
+            raise SolverError(f"information matrix of size {n} is not positive definite: {exc}") from None
+        return lambda rhs: np.asarray(factor(np.ascontiguousarray(rhs, dtype=np.float64)), dtype=np.float64)
+    kept = sp.csr_matrix(matrix)
+    return lambda rhs: solve_sparse_spd(kept, rhs)

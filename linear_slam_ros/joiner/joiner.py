@@ -38,7 +38,8 @@ from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.chain import compose
-from linear_slam_ros.joining.gate import GateResult, gate_submap
+from linear_slam_ros.joining.divide_conquer import OnlineDCState
+from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap, online_dc_holds
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +59,9 @@ class JoinerState:
         n_joined: submaps joined, in all chains.
         defer_above: the strategy's deferral setting for new chains (see :meth:`JoinStrategy.defer`).
         dim: 2 or 3, set by the first submap (``None`` before).
+        variance: the χ² gate's variance of unit weight of the stream (what the gate let through so
+            far; :class:`~linear_slam_ros.joining.gate.VarianceFactor`): the gate's thresholds are
+            scaled by it. One for the whole map, whichever robot a submap comes from.
     """
 
     method: JoinMethod
@@ -67,6 +71,7 @@ class JoinerState:
     n_joined: int = 0
     defer_above: int | None = None
     dim: int | None = None
+    variance: VarianceFactor = field(default_factory=VarianceFactor)
 
     @property
     def strategy(self) -> AnyStrategy:
@@ -205,8 +210,10 @@ def gate_step(state: JoinerState, submap: LocalMap, probability: float, robot: s
     """Test a submap against the state's global map by the χ² gate: a pure function of ``(state, submap)``.
 
     The NIS of the variables the submap shares with the map (after bringing both into one frame)
-    against ``chi2.ppf(probability, dof)``; failing variables are split off, or the submap is gated
-    whole (:func:`~linear_slam_ros.joining.gate.gate_submap`). Strategies that cannot gate
+    against its quantile at ``probability``, scaled by the state's variance factor
+    (``state.variance``); failing variables are split off, or the submap is gated whole
+    (:func:`~linear_slam_ros.joining.gate.gate_submap`). The caller adds what the gate let through to
+    ``state.variance`` once the submap is joined (:meth:`Joiner.offer` does). Strategies that cannot gate
     (``marginal`` returns ``None``) pass everything. The map compared with is the chain the submap
     continues (:func:`gate_chain`); a submap that starts an island passes.
 
@@ -215,9 +222,10 @@ def gate_step(state: JoinerState, submap: LocalMap, probability: float, robot: s
     """
     joined = gate_chain(state, submap, robot) if state.n_joined else None
     if joined is None:  # the first submap, or the first of an island: nothing to compare with
-        return GateResult(probability, 0.0, 0, float("inf"), submap=submap)
+        return GateResult(probability, 0.0, 0, float("inf"), submap=submap, variance_factor=state.variance.value)
     strategy = state.strategy
-    return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability)
+    holds = (lambda keys: online_dc_holds(joined, keys)) if isinstance(joined, OnlineDCState) else None
+    return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability, state.variance, holds)
 
 
 @dataclass(frozen=True)
@@ -623,12 +631,15 @@ class Joiner:
             return []
         t0 = time.perf_counter()
         try:
+            result = None
             if self.gate_probability:
-                gated = self._gate(submap, seq, robot)
-                if gated is None:
+                result = self._gate(submap, seq, robot)
+                if result.submap is None:
                     return []
-                submap = gated
+                submap = result.submap
             self.state = join_step(self.state, submap, seq, robot)
+            if result is not None:  # what the gate let through is now in the map: it counts in s²
+                self.state = replace(self.state, variance=self.state.variance.updated(result))
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"{self._who(seq, robot)} rejected: {exc}")
             return []
@@ -639,12 +650,12 @@ class Joiner:
         self._progress_at[robot] = self.clock()
         return [seq]
 
-    def _gate(self, submap: LocalMap, seq: int, robot: str) -> LocalMap | None:
-        """Run the gate; return what to join (``None``: nothing left, its number used up)."""
+    def _gate(self, submap: LocalMap, seq: int, robot: str) -> GateResult:
+        """Run the gate; its ``submap`` is what to join (``None``: nothing left, its number used up)."""
         assert self.gate_probability is not None
         result = gate_step(self.state, submap, self.gate_probability, robot)
         if result.passed:
-            return submap
+            return result
         variables = result.split if not result.rejected else result.worst
         record = GateRecord(
             seq, submap.name, tuple(v.var_id for v in variables), tuple(v.kind for v in variables), result.nis,
@@ -655,7 +666,7 @@ class Joiner:
         if result.submap is None:  # nothing left to join: its number is used, the map unchanged
             self.state = self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq)
             self._progress_at[robot] = self.clock()
-        return result.submap
+        return result
 
     def stats(self) -> dict[str, float]:
         """Return counts, join-latency figures (ms) and the number of islands for the global map message."""

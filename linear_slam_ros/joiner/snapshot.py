@@ -14,7 +14,8 @@ written as:
 Loading never executes code: ``numpy.load`` with ``allow_pickle=False``, and only the classes in
 :data:`CLASSES` are rebuilt (layout caches are left out and rebuilt on demand). A file that is
 truncated, fails its checksum or has another format version raises :class:`SnapshotError` naming
-the file and the problem. :func:`write_snapshot` writes a temporary file, fsyncs it and renames
+the file and the problem (an older version listed in :data:`MIGRATED` is read, with a warning).
+:func:`write_snapshot` writes a temporary file, fsyncs it and renames
 it over the target, so a reader sees the old file or the new one, never a part.
 """
 
@@ -25,6 +26,7 @@ import enum
 import hashlib
 import io
 import json
+import logging
 import os
 import zipfile
 from collections.abc import Callable
@@ -45,12 +47,21 @@ from linear_slam_ros.joiner.islands import Chain, Stream
 from linear_slam_ros.joiner.joiner import JoinerState, SavedJoiner
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState
+from linear_slam_ros.joining.gate import VarianceFactor
 from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 
+logger = logging.getLogger(__name__)
+
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 2
-"""Bumped whenever the tree of a state changes; a file of another version is refused (2: chains and
-streams, for islands and several robots)."""
+FORMAT_VERSION = 3
+"""Bumped whenever the tree of a state changes; a file of another version is refused, but for the
+versions in :data:`MIGRATED` (2: chains and streams, for islands and several robots; 3: the χ² gate's
+variance factor, ``JoinerState.variance``)."""
+
+MIGRATED = {2: "the χ² gate's variance factor starts afresh (version 2 did not keep one)"}
+"""Older versions still read, and what reading them changes: a version 2 tree has no
+``JoinerState.variance``, which takes its default (:class:`~linear_slam_ros.joining.gate.VarianceFactor`,
+the prior alone); everything else is read exactly."""
 
 
 class SnapshotError(LinearSlamError):
@@ -68,6 +79,7 @@ CLASSES: dict[str, Callable[..., Any]] = {
     "Group": Group,
     "FeatureMap": FeatureMap,
     "CovarianceMap": CovarianceMap,
+    "VarianceFactor": VarianceFactor,
     "LocalMap": LocalMap.trusted,  # computed by the core: not validated again
 }
 """Dataclasses a state file may hold, and how each is rebuilt from its fields."""
@@ -221,14 +233,19 @@ def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>") -
         raise SnapshotError(f"state file {where}: unreadable header ({exc})") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise SnapshotError(f"state file {where}: not a linear_slam_ros state file")
-    if header.get("version") != FORMAT_VERSION:
+    version = header.get("version")
+    if version != FORMAT_VERSION and version not in MIGRATED:
         raise SnapshotError(
-            f"state file {where}: format version {header.get('version')!r}, this build reads version {FORMAT_VERSION}"
+            f"state file {where}: format version {version!r}, this build reads version {FORMAT_VERSION}"
+            f" (and {', '.join(str(v) for v in sorted(MIGRATED))})"
         )
     body = {k: v for k, v in arrays.items() if k != "header"}
     tree_json = json.dumps(header.get("tree"), sort_keys=True, allow_nan=False).encode()
     if _checksum(tree_json, body) != header.get("sha256"):
         raise SnapshotError(f"state file {where}: checksum mismatch (the file is corrupt)")
+    if version != FORMAT_VERSION:
+        logger.warning("state file %s: format version %s read by this build (version %d): %s", where, version,
+                       FORMAT_VERSION, MIGRATED[version])
     try:
         return _Decoder(body, where).decode(header["tree"])
     except (KeyError, TypeError, ValueError) as exc:

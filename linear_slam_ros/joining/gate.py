@@ -27,7 +27,9 @@ a gate at the nominal scale flags half of DLR200's clean submaps. With ``varianc
 thresholds are ``s² k F(probability; k, ν)`` for ``k`` scalars, where ``s²`` is the stream's
 a-posteriori variance factor (what the joins so far fused, with a prior of ``PRIOR_DOF`` scalars at
 scale 1) and ``ν`` the scalars behind it: the F quantile accounts for the estimate's own
-uncertainty, and tends to the χ² quantile as ``ν`` grows. ``s²`` is never taken below 1.
+uncertainty, and tends to the χ² quantile as ``ν`` grows. ``s²`` may go below 1 (information
+that is too loose: Manhattan's Σ NIS / Σ dof is 0.025), but never below the scale calibrated on
+the stream's own upper tail, so heavy-tailed clean data (VicPark, Intel) keep their gate.
 
 Frames: the map's marginal is requested for the common variables plus the submap's frame pose.
 When the map holds that pose, the small marginal is moved into the submap's frame (closed form,
@@ -50,6 +52,7 @@ would leave every later submap without the pose it is expressed in).
 from __future__ import annotations
 
 import collections
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -63,7 +66,7 @@ from linear_slam_ros.core.errors import ConfigError, SolverError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask, pose_key, to_dense, var_keys, var_sizes
-from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd
+from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd, spd_factor
 from linear_slam_ros.joining.divide_conquer import Deferred, Entry, OnlineDCState, leaf_maps
 from linear_slam_ros.joining.pairwise import join_at_seam
 from linear_slam_ros.joining.sequential import CovarianceMap, _symmetrize_lower
@@ -77,6 +80,12 @@ MAX_SPLIT_FRACTION = 0.5
 PRIOR_DOF = 20.0
 """Scalars of prior belief, at scale 1, in the variance factor of :class:`VarianceFactor`."""
 
+TAIL_QUANTILE = 0.95
+"""Quantile at which :class:`VarianceFactor` calibrates the scale on the stream's own upper tail."""
+
+PRIOR_SUBMAPS = 20
+"""Submaps of prior belief, at scale 1, in the tail calibration of :class:`VarianceFactor`."""
+
 
 @dataclass(frozen=True)
 class VarianceFactor:
@@ -87,18 +96,36 @@ class VarianceFactor:
     nominal scale with ``PRIOR_DOF`` scalars of weight; :meth:`nominal` the exactly known scale 1
     (thresholds are plain χ² quantiles).
 
+    ``s²`` may go below 1, so a stream whose information is too loose gets a tighter gate; but the
+    mean alone would over-tighten a stream with heavy tails (VicPark6898: mean 0.06, and a gate at
+    that scale splits off most of its clean submaps, the map then drifting from every later one).
+    So the scale is also calibrated on the stream's own upper tail: each fused submap gives
+    ``u = NIS / chi2.ppf(TAIL_QUANTILE, dof)``, and ``s²`` is at least the ``TAIL_QUANTILE``
+    quantile of the ``u`` so far together with ``PRIOR_SUBMAPS`` prior submaps at ``u = 1``. For
+    χ²-consistent submaps at any scale both estimates agree (a fraction ``1 - TAIL_QUANTILE`` of
+    them exceeds that quantile); for heavy tails the tail estimate is the larger. The prior keeps a
+    short stream at 1 (the tail calibration stays at 1 for the first 360 submaps, then follows the
+    stream's), and the F quantile of :meth:`threshold` widens the thresholds while ``nu`` is small;
+    ``floor`` is a hard lower bound (1: the gate never tightens).
+
     Attributes:
         nis: sum of the fused NIS (dimensionless).
         dof: sum of their scalars.
         prior_dof: weight of the prior ``s² = 1``, in scalars (``inf``: ``s² = 1`` is known).
+        floor: ``s²`` is never taken below this (0: no bound but the estimates').
+        tail: ``u`` of each fused submap, in order (empty: only the prior).
+        prior_submaps: prior submaps at ``u = 1`` in the tail calibration.
     """
 
     nis: float = 0.0
     dof: float = 0.0
     prior_dof: float = PRIOR_DOF
+    floor: float = 0.0
+    tail: tuple[float, ...] = ()
+    prior_submaps: int = PRIOR_SUBMAPS
 
     def __post_init__(self) -> None:
-        for name in ("nis", "dof", "prior_dof"):
+        for name in ("nis", "dof", "prior_dof", "floor", "prior_submaps"):
             value = getattr(self, name)
             if not value >= 0.0:
                 raise ConfigError(f"VarianceFactor.{name}={value!r} must be a number >= 0")
@@ -116,11 +143,24 @@ class VarianceFactor:
         return self.prior_dof + self.dof
 
     @property
+    def mean(self) -> float:
+        """The mean estimate ``(prior_dof + nis) / (prior_dof + dof)``."""
+        return (self.prior_dof + self.nis) / self.nu
+
+    @functools.cached_property
+    def tail_scale(self) -> float:
+        """The tail estimate: the ``TAIL_QUANTILE`` quantile of ``tail`` and ``prior_submaps`` ones."""
+        if not self.tail:
+            return 1.0 if self.prior_submaps else 0.0
+        values = np.concatenate([np.ones(self.prior_submaps), np.asarray(self.tail, dtype=np.float64)])
+        return float(np.quantile(values, TAIL_QUANTILE))
+
+    @property
     def value(self) -> float:
-        """``s²``, never below 1 (a gate is never made stricter than the submaps' own information says)."""
+        """``s² = max(floor, mean, tail_scale)`` (1 for the known scale)."""
         if np.isinf(self.prior_dof):
             return 1.0
-        return max(1.0, (self.prior_dof + self.nis) / self.nu)
+        return max(self.floor, self.mean, self.tail_scale)
 
     def threshold(self, probability: float, dof: int) -> float:
         """NIS threshold for ``dof`` scalars: ``s² dof F.ppf(probability, dof, nu)`` (χ² for known scale; ``inf`` for 0)."""
@@ -140,7 +180,8 @@ class VarianceFactor:
         """Add what ``result`` lets through (``nis_after``, ``dof_after``; nothing when gated whole)."""
         if result.rejected or result.dof_after == 0:
             return self
-        return replace(self, nis=self.nis + result.nis_after, dof=self.dof + result.dof_after)
+        u = result.nis_after / float(scipy.stats.chi2.ppf(TAIL_QUANTILE, result.dof_after))
+        return replace(self, nis=self.nis + result.nis_after, dof=self.dof + result.dof_after, tail=(*self.tail, u))
 
 
 @dataclass(frozen=True)
@@ -319,6 +360,158 @@ def online_dc_marginal(state: OnlineDCState, keys: IntArray, cache: PrefixCache 
     return Marginal.of_map(join_at_seam(small, top), keys)
 
 
+ENTRY_BLOCK_MAX = 6000
+"""Scalars of covariance an :class:`EntryCovariance` keeps at most (then it starts afresh): 288 MB."""
+
+
+class EntryCovariance:
+    """One stack entry's map, its information factorised once, and the covariance of the variables asked so far.
+
+    A stack entry stays unchanged while it is on the stack (a power of two of submaps), and the
+    variables the gate asks of it (those it shares with the other entries, the arriving submaps'
+    loop closures) mostly recur. So its information is factorised once (:func:`spd_factor`), a
+    variable asked for the first time costs one solve per scalar, and the covariance block of every
+    variable asked so far is kept. Exact: the same covariance as a factorisation per call.
+    """
+
+    def __init__(self, local_map: LocalMap) -> None:
+        self.map = local_map
+        self._solve: Callable[[FloatArray], FloatArray] | None = None
+        self._pos: dict[int, int] = {}  # variable index -> offset of its first scalar in the block
+        self._block = np.zeros((0, 0))
+        self._scalars = np.zeros(0, dtype=np.int64)  # the map's scalar of each row of the block
+
+    def covariance(self, var_idx: IntArray) -> FloatArray:
+        """Return the marginal covariance of the variables ``var_idx`` of the entry's map, in that order.
+
+        Raises:
+            SolverError: the information is not positive definite.
+        """
+        m = self.map
+        new = np.array([v for v in var_idx.tolist() if v not in self._pos], dtype=np.int64)
+        if new.size:
+            sc_new = m.scalar_index(new)
+            if self._block.shape[0] + sc_new.size > ENTRY_BLOCK_MAX:  # start afresh with what is asked now
+                self._pos, self._block, self._scalars = {}, np.zeros((0, 0)), np.zeros(0, dtype=np.int64)
+                new = np.asarray(var_idx, dtype=np.int64)
+                sc_new = m.scalar_index(new)
+            if self._solve is None:
+                self._solve = spd_factor(m.info)
+            rhs = np.zeros((m.state_dim, sc_new.size))
+            rhs[sc_new, np.arange(sc_new.size)] = 1.0
+            cols = self._solve(rhs)
+            cross = cols[self._scalars]
+            corner = cols[sc_new]
+            n_old = self._block.shape[0]
+            block = np.empty((n_old + sc_new.size, n_old + sc_new.size))
+            block[:n_old, :n_old] = self._block
+            block[:n_old, n_old:] = cross
+            block[n_old:, :n_old] = cross.T
+            block[n_old:, n_old:] = 0.5 * (corner + corner.T)
+            offset = n_old
+            for v in new.tolist():
+                self._pos[v] = offset
+                offset += int(m.sizes[v])
+            self._block = block
+            self._scalars = np.concatenate([self._scalars, sc_new])
+        rows = np.concatenate([np.arange(self._pos[v], self._pos[v] + int(m.sizes[v])) for v in var_idx.tolist()])
+        return np.asarray(self._block[np.ix_(rows, rows)], dtype=np.float64)
+
+    def reduced(self, var_idx: IntArray) -> LocalMap:
+        """Return the entry's map reduced to the variables ``var_idx`` (ascending), its end pose as it is.
+
+        Raises:
+            SolverError: a covariance is not positive definite.
+        """
+        m = self.map
+        info = _spd_inverse(self.covariance(var_idx), f"marginal covariance of stack entry {m.name!r}")
+        return LocalMap.trusted(m.dim, m.frame_id, m.end_id, m.ids[var_idx], m.kinds[var_idx],
+                                m.x[m.scalar_index(var_idx)], info, "stack entry marginal")
+
+
+@dataclass
+class EntryCache:
+    """The :class:`EntryCovariance` of each online D&C stack entry, for :func:`online_dc_marginal` (a cache only).
+
+    Entries are keyed by identity and kept while they are on the newest stack asked about or the
+    one before (a benchmark's trials alternate between two states). Results never depend on it.
+    """
+
+    _held: dict[int, tuple[Entry, EntryCovariance]] = field(default_factory=dict)
+    _previous: frozenset[int] = frozenset()
+    prefixes: PrefixCache = field(default_factory=PrefixCache)
+
+    def entries(self, stack: tuple[Entry, ...]) -> list[EntryCovariance]:
+        """Return the covariance holder of each entry of ``stack``, creating those not held yet."""
+        tokens = [_entry_token(e) for e in stack]
+        out = []
+        for token, entry in zip(tokens, stack, strict=True):
+            held = self._held.get(token)
+            if held is None:
+                held = (entry, EntryCovariance(_entry_map(entry)))
+                self._held[token] = held
+            out.append(held[1])
+        keep = self._previous | frozenset(tokens)
+        for token in [t for t in self._held if t not in keep]:
+            del self._held[token]
+        self._previous = frozenset(tokens)
+        return out
+
+    def clear(self) -> None:
+        """Forget every cached entry and prefix."""
+        self._held.clear()
+        self._previous = frozenset()
+        self.prefixes.clear()
+
+
+def online_dc_marginal_by_entries(
+    state: OnlineDCState, keys: IntArray, cache: EntryCache | None = None
+) -> Marginal | None:
+    """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (no merge).
+
+    Each entry is reduced to the variables that matter: the requested ones, those it shares with
+    another entry, and its end pose (the seam of the next join); the small maps are joined oldest
+    first at their seams, as the stack is merged. Exact for the same reason as
+    :func:`online_dc_marginal`. Each entry's information is factorised once while it is on the
+    stack (:class:`EntryCovariance`): a call costs solves for variables not asked before and
+    dense algebra on the kept ones. ``None`` when the map holds none of ``keys``. An entry left
+    with no variable (in its own end pose's frame, sharing nothing) falls back to
+    :func:`online_dc_marginal`.
+
+    Raises:
+        SolverError: an information matrix is not positive definite.
+    """
+    if not state.stack:
+        return None
+    cache = cache if cache is not None else EntryCache()
+    held = cache.entries(state.stack)
+    maps = [h.map for h in held]
+    requested = set(np.asarray(keys).tolist())
+    if len(maps) == 1:
+        wanted = requested
+    else:
+        all_keys, counts = np.unique(np.concatenate([m.keys for m in maps]), return_counts=True)
+        wanted = requested | set(all_keys[counts > 1].tolist())
+    current: LocalMap | None = None
+    for h, m in zip(held, maps, strict=True):
+        lookup = m.key_set
+        chosen = {lookup[k] for k in wanted if k in lookup}
+        if m.end_id is not None and pose_key(m.end_id) in lookup:
+            chosen.add(lookup[pose_key(m.end_id)])
+        if not chosen:
+            return online_dc_marginal(state, keys, cache.prefixes)
+        small = h.reduced(np.array(sorted(chosen), dtype=np.int64))
+        current = small if current is None else join_at_seam(current, small)
+    assert current is not None
+    return Marginal.of_map(current, keys)
+
+
+def online_dc_holds(state: OnlineDCState, keys: IntArray) -> bool:
+    """Whether the online D&C map holds any of ``keys`` (key sets of the stack's parts: no join, no solve)."""
+    wanted = np.asarray(keys).tolist()
+    return any(k in leaf.key_set for leaf in leaf_maps(state.stack) for k in wanted)
+
+
 # --------------------------------------------------------------------------- the test
 
 
@@ -360,6 +553,7 @@ class GateResult:
         variance_factor: ``s²`` the thresholds were scaled by (:class:`VarianceFactor`; 1: nominal).
         variable_threshold: the per-variable test's threshold for the worst variable's dof.
         n_common: number of common variables (the Šidák exponent of the per-variable test).
+        variables: every common variable's conditional NIS, as first tested (``worst`` is their top 5).
     """
 
     probability: float
@@ -375,6 +569,7 @@ class GateResult:
     variance_factor: float = 1.0
     variable_threshold: float = float("inf")
     n_common: int = 0
+    variables: tuple[VariableNis, ...] = ()
 
     @property
     def passed(self) -> bool:
@@ -409,7 +604,8 @@ def _nis(r: FloatArray, cov: FloatArray) -> tuple[float, FloatArray]:
 
 
 def gate_submap(
-    marginal: MarginalFn, submap: LocalMap, probability: float, variance: VarianceFactor | None = None
+    marginal: MarginalFn, submap: LocalMap, probability: float, variance: VarianceFactor | None = None,
+    holds: Callable[[IntArray], bool] | None = None,
 ) -> GateResult:
     """Test a submap against the global map's marginal (module docstring): pass, split, or gate it whole.
 
@@ -419,6 +615,10 @@ def gate_submap(
         probability: χ² probability of the gate, in (0, 1).
         variance: the stream's variance of unit weight (``None``: :meth:`VarianceFactor.nominal`,
             plain χ² quantiles).
+        holds: whether the global map holds any of given keys, cheaply (``None``: not known). A
+            submap sharing no variable with the map has nothing to test: its marginal is then not
+            computed (half the submaps of a pose graph: only the frame pose, not a variable of the
+            submap, is in the map).
 
     Raises:
         ConfigError: ``probability`` is not in (0, 1).
@@ -428,8 +628,10 @@ def gate_submap(
         raise ConfigError(f"gate probability={probability!r} must be in (0, 1)")
     scale = variance if variance is not None else VarianceFactor.nominal()
     request = np.concatenate([submap.keys, [pose_key(submap.frame_id)]])
-    m = marginal(request)
     nothing = GateResult(probability, 0.0, 0, float("inf"), submap=submap, variance_factor=scale.value)
+    if holds is not None and not holds(submap.keys):
+        return nothing
+    m = marginal(request)
     if m is None:
         return nothing
     s = submap
@@ -498,7 +700,8 @@ def gate_submap(
     n_common = len(common)
     if not fails(total, dof, per_var):
         return GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap,
-                          variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common)
+                          variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
+                          variables=tuple(per_var))
     limit = max(1, int(MAX_SPLIT_FRACTION * len(common)))
     split: list[VariableNis] = []
     current, current_vars = total, per_var
@@ -521,7 +724,8 @@ def gate_submap(
     drop = [submap.key_set[int(2 * v.var_id + v.kind)] for v in split]
     trimmed = marginalise_out(submap, drop) if len(drop) < submap.n_vars else None
     return GateResult(probability, total, dof, threshold, worst, tuple(split), current, dof_after, rejected, trimmed,
-                      variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common)
+                      variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
+                      variables=tuple(per_var))
 
 
 def _reframe(m: Marginal, frame_id: int) -> Marginal:
@@ -577,6 +781,8 @@ def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
 
 
 __all__ = [
-    "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "PRIOR_DOF", "GateResult", "Marginal", "MarginalFn", "PrefixCache",
-    "VarianceFactor", "VariableNis", "chi2_threshold", "gate_submap", "marginalise_out", "online_dc_marginal",
+    "ENTRY_BLOCK_MAX", "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "PRIOR_DOF", "PRIOR_SUBMAPS", "TAIL_QUANTILE", "EntryCache",
+    "EntryCovariance", "GateResult", "Marginal", "MarginalFn", "PrefixCache", "VarianceFactor", "VariableNis",
+    "chi2_threshold", "gate_submap", "marginalise_out", "online_dc_holds", "online_dc_marginal",
+    "online_dc_marginal_by_entries",
 ]

@@ -102,3 +102,21 @@ def test_reused_analysis_solves_as_a_fresh_one_and_analyses_once_per_pattern(rng
         np.testing.assert_allclose(solver.solve(a, b), solve_spd(a, b), rtol=1e-12, atol=1e-14)  # usable after a failure
     finally:
         solver.close()
+
+
+def test_a_kept_factor_solves_as_a_fresh_solve_any_number_of_times(rng):
+    from linear_slam_ros.core.cholmod import Factor
+    from linear_slam_ros.core.solvers import spd_factor
+
+    for m in (_spd(400, rng), _spd(60, rng)):  # CHOLMOD's kept factor; the dense path
+        solve = spd_factor(m)
+        for _ in range(2):
+            b = rng.normal(size=(m.shape[0], 3))
+            np.testing.assert_allclose(solve(b), solve_sparse_spd(m, b), atol=1e-10)
+        np.testing.assert_allclose(solve(b[:, 0]), solve_sparse_spd(m, b[:, 0]), atol=1e-10)
+    with pytest.raises(SolverError, match="information matrix of size 200 is not positive definite"):
+        spd_factor(sp.diags(np.r_[np.ones(199), -1.0]).tocsr())
+    factor = Factor(_spd(400, rng))
+    factor.close()
+    with pytest.raises(SolverError, match="CHOLMOD factor used after it was closed"):
+        factor.solve(np.ones(400))

@@ -155,3 +155,64 @@ def test_cli_report_lists_the_gate_decisions(tmp_path, monkeypatch):
     for g in report["gated"]:
         assert set(g) >= {"submap", "variables", "nis", "dof"}
     assert main(["join", archive, "--method", "dc", "--gate-probability", "0.99", "--out", str(tmp_path / "dc")]) == 2
+
+
+def test_the_joiner_carries_the_variance_factor_and_its_gate_tightens_on_loose_information():
+    """A stream whose information is 40 times too loose: the carried factor (once the stream is longer
+    than the prior's 360 submaps) tightens the gate enough to split off a feature moved by 2 m, which
+    the gate at s² = 1 lets through; reset forgets the factor."""
+    from dataclasses import replace
+
+    from linear_slam_ros.evaluation.gating import global_keys
+    from linear_slam_ros.joining.gate import VarianceFactor
+
+    world = make_world(2, 1350, 40, np.random.default_rng(11), loops=5.0)  # 450 submaps: past the prior's 360
+    clean = noisy_local_maps(world, np.random.default_rng(12), steps_per_map=3, sensor_range=5.0)
+    loose = [m.replace(info=m.info / 40.0) for m in clean]
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=0.99999999)
+    k = len(loose) - 2
+    for seq, m in enumerate(loose[:k], start=1):
+        assert j.offer(m, seq) == [seq]
+    assert j.gated == []
+    assert j.state.variance.dof > 1000 and j.state.variance.value < 0.2  # fused scalars; s² well below 1
+    m = loose[k]
+    known = global_keys(j.state)
+    f = next(i for i in range(m.n_vars) if m.kinds[i] == FEATURE and int(m.keys[i]) in known)
+    x = m.x.copy()
+    x[m.scalar_slice(f).start] += 2.0
+    bad = m.replace(x=x)
+    untightened = gate_step(replace(j.state, variance=VarianceFactor(floor=1.0)), bad, 0.99999999)
+    assert untightened.passed  # at s² >= 1 the 2 m move is within what the loose information allows
+    before = j.state.variance
+    assert j.offer(bad, k + 1) == [k + 1]
+    assert [g.variables for g in j.gated] == [(int(m.ids[f]),)]
+    assert j.state.variance.dof > before.dof  # the rest of the submap was fused and counted
+    j.reset()
+    assert j.state.variance == VarianceFactor()
+
+
+def test_the_marginal_by_stack_entries_equals_the_prefix_merge_and_factorises_each_entry_once(maps, monkeypatch):
+    import linear_slam_ros.joining.gate as gate_module
+    from linear_slam_ros.core.local_map import pose_key
+    from linear_slam_ros.joining.gate import EntryCache, PrefixCache, online_dc_marginal, online_dc_marginal_by_entries
+
+    factorised: list[object] = []  # the matrices themselves: kept alive, their ids cannot be reused
+    real = gate_module.spd_factor
+    monkeypatch.setattr(gate_module, "spd_factor", lambda info: factorised.append(info) or real(info))
+    j = Joiner(JoinMethod.ONLINE_DC)
+    entries, prefixes = EntryCache(), PrefixCache()
+    compared = 0
+    for seq, m in enumerate(maps, start=1):
+        if seq > 2:
+            keys = np.concatenate([m.keys, [pose_key(m.frame_id)]])
+            for _ in range(2):  # the second call asks nothing new: no factorisation, no solve
+                by_entries = online_dc_marginal_by_entries(j.state.joined, keys, entries)
+            merged = online_dc_marginal(j.state.joined, keys, prefixes)
+            assert by_entries is not None and merged is not None
+            assert by_entries.keys.tolist() == merged.keys.tolist() and by_entries.frame_id == merged.frame_id
+            np.testing.assert_allclose(by_entries.x, merged.x, atol=1e-9)
+            np.testing.assert_allclose(by_entries.cov, merged.cov, atol=1e-9 * np.abs(merged.cov).max())
+            compared += 1
+        j.offer(m, seq)
+    assert compared >= 5
+    assert len(factorised) == len({id(info) for info in factorised})  # each entry's information factorised once

@@ -5,22 +5,25 @@ from __future__ import annotations
 import io
 import json
 import zipfile
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
-from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, global_result
+from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, gate_step, global_result
 from linear_slam_ros.joiner.registry import STRATEGIES
 from linear_slam_ros.joiner.snapshot import (
     FORMAT_VERSION,
     SnapshotError,
+    _checksum,
     decode_state,
     encode_state,
     read_snapshot,
     write_snapshot,
 )
+from linear_slam_ros.joining.gate import VarianceFactor
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +73,43 @@ def test_every_strategy_state_round_trips_bit_for_bit(key, maps, tmp_path):
         joiner.offer(maps[7], 8)
     ra, rb = global_result(j.state), global_result(other.state)
     assert ra.x.tobytes() == rb.x.tobytes()
+
+
+def test_the_gate_variance_factor_round_trips_and_the_restored_gate_decides_alike(maps, tmp_path):
+    j = Joiner("online-dc", gate_probability=0.99999999)
+    for seq, m in enumerate(maps[:7], start=1):
+        j.offer(m, seq)
+    variance = j.state.variance
+    assert variance.dof > 0 and variance.nis > 0 and variance.value != 1.0  # not the prior alone
+    path = tmp_path / "gated.npz"
+    write_snapshot(path, j.save())
+    back = read_snapshot(path)
+    assert back.state.variance == variance and back.state.variance.value == variance.value  # exact floats
+    other = Joiner("online-dc", gate_probability=0.99999999)
+    other.restore(back)
+    ra, rb = (gate_step(x.state, maps[7], 0.99999999) for x in (j, other))
+    assert (ra.nis, ra.threshold, ra.variance_factor) == (rb.nis, rb.threshold, rb.variance_factor)
+    for joiner in (j, other):
+        joiner.offer(maps[7], 8)
+    assert j.state.variance == other.state.variance
+
+
+def test_a_version_2_file_is_read_with_a_fresh_variance_factor(maps, tmp_path, caplog):
+    j = Joiner("online-dc", gate_probability=0.99999999)
+    for seq, m in enumerate(maps[:5], start=1):
+        j.offer(m, seq)
+    arrays = encode_state(j.save())
+    header = json.loads(bytes(arrays["header"]).decode())
+    del header["tree"]["fields"]["state"]["fields"]["variance"]  # what version 2 wrote
+    header["version"] = 2
+    body = {k: v for k, v in arrays.items() if k != "header"}
+    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    old = tmp_path / "v2.npz"
+    _rewrite(old, arrays)
+    back = read_snapshot(old)
+    assert back.state.variance == VarianceFactor() and "variance factor starts afresh" in caplog.text
+    _same(replace(back.state, variance=j.state.variance), j.state)
 
 
 def test_fortran_ordered_covariance_keeps_its_order(maps):

@@ -13,7 +13,15 @@ from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.strategy import JoinMethod
-from linear_slam_ros.joining.gate import PRIOR_DOF, GateResult, Marginal, VarianceFactor, gate_submap
+from linear_slam_ros.joining.gate import (
+    PRIOR_DOF,
+    PRIOR_SUBMAPS,
+    TAIL_QUANTILE,
+    GateResult,
+    Marginal,
+    VarianceFactor,
+    gate_submap,
+)
 from linear_slam_ros.joining.pairwise import join_pair
 
 N_FEATURES = 20
@@ -59,7 +67,24 @@ def test_the_variance_factor_scales_the_thresholds():
 
 def test_variance_factor_estimate_floor_and_limits():
     assert VarianceFactor.nominal().threshold(0.99, 3) == pytest.approx(scipy.stats.chi2.ppf(0.99, 3))
-    assert VarianceFactor(nis=10.0, dof=100.0).value == 1.0  # never below 1
+    # a long χ²-consistent stream at scale 0.25 (information 4 times too loose): both estimates find it
+    rng = np.random.default_rng(5)
+    k = rng.integers(2, 7, size=2000)
+    nis = 0.25 * rng.chisquare(k)
+    u = tuple(float(x) for x in nis / scipy.stats.chi2.ppf(TAIL_QUANTILE, k))
+    loose = VarianceFactor(nis=float(nis.sum()), dof=float(k.sum()), tail=u)
+    assert loose.mean == pytest.approx(0.25, rel=0.05) and loose.tail_scale == pytest.approx(0.25, rel=0.1)
+    assert loose.value == max(loose.mean, loose.tail_scale) < 0.3
+    assert VarianceFactor(nis=loose.nis, dof=loose.dof, tail=u, floor=1.0).value == 1.0  # the gate that never tightens
+    # heavy tails (a tenth of the submaps at scale 4, the rest at 0.05: mean 0.45): the tail keeps the scale up
+    heavy = tuple(float(x) for x in np.where(rng.random(2000) < 0.1, 16.0, 0.2) * np.asarray(u))
+    assert VarianceFactor(nis=loose.nis, dof=loose.dof, tail=heavy).tail_scale > 1.0
+    # a short stream is not tightened: the prior submaps at 1 hold the tail quantile for 360 submaps
+    short = VarianceFactor(nis=0.0, dof=300.0, tail=(0.0,) * (PRIOR_SUBMAPS * 18))
+    assert short.mean < 0.1 and short.value == pytest.approx(1.0)
+    assert VarianceFactor(nis=0.0, dof=300.0, tail=(0.0,) * (PRIOR_SUBMAPS * 21)).value < 0.1
+    few = VarianceFactor(nis=5.0, dof=5.0, tail=(1.0,))  # F quantile: a short stream's thresholds stay wide
+    assert few.threshold(0.999, 3) > scipy.stats.chi2.ppf(0.999, 3)
     few, many = VarianceFactor(nis=5.0, dof=5.0), VarianceFactor(nis=1e6, dof=1e6)
     chi2_q = scipy.stats.chi2.ppf(0.999, 4)
     assert few.threshold(0.999, 4) > many.threshold(0.999, 4) > chi2_q  # F quantile: wider while ν is small
@@ -67,7 +92,8 @@ def test_variance_factor_estimate_floor_and_limits():
     assert few.threshold(0.999, 0) == float("inf")
     passed = GateResult(0.9, 8.0, 4, 9.0, nis_after=8.0, dof_after=4)
     rejected = GateResult(0.9, 80.0, 4, 9.0, nis_after=0.0, dof_after=4, rejected=True)
-    assert few.updated(passed) == VarianceFactor(nis=13.0, dof=9.0) and few.updated(rejected) is few
+    u = 8.0 / scipy.stats.chi2.ppf(TAIL_QUANTILE, 4)
+    assert few.updated(passed) == VarianceFactor(nis=13.0, dof=9.0, tail=(u,)) and few.updated(rejected) is few
 
 
 @pytest.mark.parametrize(("field", "value", "match"), [

@@ -22,7 +22,7 @@ from linear_slam_ros.joining.divide_conquer import (
     online_dc_step,
     pending_joins,
 )
-from linear_slam_ros.joining.gate import Marginal, PrefixCache, online_dc_marginal
+from linear_slam_ros.joining.gate import EntryCache, Marginal, online_dc_marginal_by_entries
 
 
 class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
@@ -65,19 +65,19 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
 
     def __init__(self) -> None:
         self._chain = PoseChain()  # a cache only: the result depends on the state alone
-        self._prefixes = PrefixCache()  # a cache only, for marginal()
+        self._entries = EntryCache()  # a cache only, for marginal()
 
     def current_pose(self, state: OnlineDCState, frame_pose_id: int) -> PoseEstimate | None:
         """Chain the newest end pose along the stack's parts, computing no merge (only the changed parts)."""
         return self._chain.end_pose(leaf_maps(state.stack), frame_pose_id)
 
     def marginal(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> Marginal | None:
-        """Return the merged stack's marginal of ``keys``: cached prefix merge, reduced, joined with the top.
+        """Return the merged stack's marginal of ``keys``: each entry reduced (its factorisation kept), the small maps joined.
 
-        See :func:`~linear_slam_ros.joining.gate.online_dc_marginal`; deferred joins are not forced
-        (their inputs are folded instead).
+        See :func:`~linear_slam_ros.joining.gate.online_dc_marginal_by_entries`; deferred joins are
+        not forced (their inputs are folded instead).
         """
-        return online_dc_marginal(state, keys, self._prefixes)
+        return online_dc_marginal_by_entries(state, keys, self._entries)
 
 
 class BatchDC(BatchStrategy[LocalMap]):

@@ -22,12 +22,28 @@ os.environ.update(loopback_env(20 + os.getpid() % 70))
 
 from rclpy.serialization import deserialize_message  # noqa: E402  (after the environment is set)
 from std_msgs.msg import Float64MultiArray  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
 
 from linear_slam_ros.ros.bagio import BagRecord  # noqa: E402
 from linear_slam_ros.ros.player import play  # noqa: E402
-from linear_slam_ros.ros.spin import LatestMessage  # noqa: E402
+from linear_slam_ros.ros.spin import LatestMessage, spin_until  # noqa: E402
 from msg_adapters import decode_map  # noqa: E402
 from msg_adapters.ros import parts  # noqa: E402
+
+
+def call_trigger(node, name: str, timeout_s: float = 30.0):  # type: ignore[no-untyped-def]
+    """Call the ``std_srvs/Trigger`` service ``name`` from ``node``; return its response.
+
+    Asserts that the service appears and answers within ``timeout_s`` each; the client is destroyed.
+    """
+    client = node.create_client(Trigger, name)
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f"service {name} did not appear"
+        future = client.call_async(Trigger.Request())
+        assert spin_until(node, future.done, timeout_s, 0.05), f"{name} did not answer"
+        return future.result()
+    finally:
+        node.destroy_client(client)
 
 
 def dataset_bag(name: str) -> Path:

@@ -13,15 +13,14 @@ import time
 import numpy as np
 import pytest
 from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import Trigger
 
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.joiner.snapshot import FORMAT_VERSION
 from linear_slam_ros.ros.bagio import read_messages
 from linear_slam_ros.ros.qos import inbound_qos
 from linear_slam_ros.ros.spin import spin_until
+from ros_support import call_trigger, wait_for_global_map
 from ros_support import dataset_bag as _bag
-from ros_support import wait_for_global_map
 
 KILLS = 10
 
@@ -55,15 +54,6 @@ def _publish_then_kill(node, joiner, records, rate_factor, instant):
     os.kill(joiner.process.pid, signal.SIGKILL)
     joiner.process.wait(30)
     node.destroy_publisher(pub)
-
-
-def _service(node, name, timeout_s=30.0):
-    client = node.create_client(Trigger, name)
-    assert client.wait_for_service(timeout_sec=timeout_s), f"service {name} did not appear"
-    future = client.call_async(Trigger.Request())
-    assert spin_until(node, future.done, timeout_s, 0.05), f"{name} did not answer"
-    node.destroy_client(client)
-    return future.result()
 
 
 @pytest.mark.parametrize(
@@ -165,7 +155,7 @@ def test_save_stop_load_continue_equals_one_run(how, node, start_joiner, read_be
     records = list(read_messages(_bag(name)))
     saved = tmp_path / "saved"
     joiner, _ = _run_to_end(node, start_joiner, records[:90], 90, mode=mode, save_directory=str(saved))
-    response = _service(node, f"/{joiner.namespace}/joiner/save_map")
+    response = call_trigger(node, f"/{joiner.namespace}/joiner/save_map")
     assert response.success, response.message
     assert joiner.stop()[0] == 0
     assert (saved / "state.npz").is_file()
@@ -174,7 +164,7 @@ def test_save_stop_load_continue_equals_one_run(how, node, start_joiner, read_be
         joiner = start_joiner(mode=mode, initial_map=str(saved / "state.npz"), publish_rate=10.0)
     else:
         joiner = start_joiner(mode=mode, load_path=str(saved / "state.npz"), publish_rate=10.0)
-        response = _service(node, f"/{joiner.namespace}/joiner/load_map")
+        response = call_trigger(node, f"/{joiner.namespace}/joiner/load_map")
         assert response.success, response.message
     loaded, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == 90, 60.0, joiner)
     joiner.play(node, records)  # the first 90 again (skipped), then the rest

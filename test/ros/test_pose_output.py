@@ -19,7 +19,6 @@ import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import serialize_message
-from std_srvs.srv import Trigger
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import pose_key, to_dense
@@ -32,7 +31,7 @@ from linear_slam_ros.ros.tf_output import tf_message_class
 from msg_adapters import Stamp, encode_map
 from msg_adapters.ros import to_msg
 from msg_adapters.views import ROS_POSE_ORDER
-from ros_support import wait_for_global_map
+from ros_support import call_trigger, wait_for_global_map
 
 N_MAPS = 8
 STAMPS = [Stamp(1_700_000_000 + i, 250_000_000 * (i % 4)) for i in range(1, N_MAPS + 1)]
@@ -77,16 +76,6 @@ def _offline_end_pose(maps):
     return moved.x[sc], np.linalg.inv(to_dense(moved.info))[np.ix_(sc, sc)]
 
 
-def _call(node, joiner, service: str):
-    client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/{service}")
-    assert client.wait_for_service(timeout_sec=20)
-    future = client.call_async(Trigger.Request())
-    import rclpy
-
-    rclpy.spin_until_future_complete(node, future, timeout_sec=30)
-    return future.result()
-
-
 def test_pose_carries_the_exact_covariance_and_save_map_writes_tum(node, start_joiner, tmp_path):
     maps = _maps()
     saved = tmp_path / "saved"
@@ -110,7 +99,7 @@ def test_pose_carries_the_exact_covariance_and_save_map_writes_tum(node, start_j
     cov = np.array(msg.pose.covariance).reshape(6, 6)
     assert np.all(cov[2:5, :] == 0.0) and np.all(cov[:, 2:5] == 0.0)  # z, roll, pitch: fixed in 2D
 
-    result = _call(node, joiner, "save_map")
+    result = call_trigger(node, f"/{joiner.namespace}/joiner/save_map")
     assert result.success, result.message
     lines = [ln.split() for ln in (saved / "poses.tum").read_text().splitlines() if not ln.startswith("#")]
     assert len(lines) == N_MAPS  # one per submap end pose, stamped with its submap's stamp

@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 import pytest
-from std_srvs.srv import Trigger
 
 from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.objective import chi2
@@ -16,7 +15,7 @@ from linear_slam_ros.ros.bag_from_dataset import load_source
 from linear_slam_ros.ros.bagio import read_messages
 from linear_slam_ros.ros.demo import decode_refined_map
 from linear_slam_ros.ros.spin import LatestMessage, spin_until
-from ros_support import REPO
+from ros_support import REPO, call_trigger
 
 N_MAPS = 40  # the first VicPark200 submaps (features and poses; loop closures within them)
 
@@ -80,10 +79,7 @@ def test_refined_map_reaches_offline_optimum_and_refiner_stops_on_reset_and_shut
     assert abs(chi2(message.local_map, maps) - offline.chi2) <= 1e-8 * offline.chi2  # the published estimate itself
     assert segment["lag_s"] >= 0 and segment["cpu_s"] > 0
 
-    client = node.create_client(Trigger, joiner.topic("joiner/reset"))  # the node's ~/reset
-    assert client.wait_for_service(timeout_sec=10.0)
-    future = client.call_async(Trigger.Request())
-    assert spin_until(node, future.done, 20.0) and future.result().success
+    assert call_trigger(node, joiner.topic("joiner/reset"), 20.0).success  # the node's ~/reset
     assert _ended_within(first, 5.0), "the refiner process outlived ~/reset"
     assert spin_until(node, lambda: len(_refiner_children(joiner.process.pid)) == 1, 10.0), "no fresh refiner after ~/reset"
     second = _refiner_children(joiner.process.pid)[0]

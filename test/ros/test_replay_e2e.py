@@ -14,7 +14,6 @@ import pytest
 import rclpy
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
-from std_srvs.srv import Trigger
 
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.runner import run_join
@@ -24,7 +23,7 @@ from linear_slam_ros.ros.bagio import BagRecord, read_messages
 from linear_slam_ros.ros.player import play
 from msg_adapters import Stamp, decode_map, encode_map
 from msg_adapters.ros import to_msg
-from ros_support import REPO, wait_for_global_map
+from ros_support import REPO, call_trigger, wait_for_global_map
 from ros_support import dataset_bag as _bag
 from support import dataset_source
 
@@ -91,7 +90,7 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     joiner.play(node, records)
     final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner,
                                    decode=decode_feature_map)
-    result = _call(node, joiner, "save_map")
+    result = call_trigger(node, f"/{joiner.namespace}/joiner/save_map")
     assert result.success, result.message
     assert (saved / "features.txt").exists() and not (saved / "poses.txt").exists()
     back = [decode_feature_map(*parts_of(r.raw)) for r in read_messages(saved / "global_map_bag")]
@@ -133,14 +132,6 @@ def test_late_subscriber_gets_the_latched_map(node, start_joiner):
     assert got.n_submaps == len(maps) and got.local_map.x.tobytes() == first.local_map.x.tobytes()
 
 
-def _call(node, joiner, service):
-    client = node.create_client(Trigger, f"/{joiner.namespace}/joiner/{service}")
-    assert client.wait_for_service(timeout_sec=20)
-    future = client.call_async(Trigger.Request())
-    rclpy.spin_until_future_complete(node, future, timeout_sec=30)
-    return future.result()
-
-
 def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner, tmp_path):
     maps = _synthetic()
     good = [to_msg(encode_map(m, i)) for i, m in enumerate(maps, start=1)]
@@ -161,7 +152,7 @@ def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner, tmp_path
 
     # ~/save_map writes the reference format and a bag; ~/reset clears the map
     for service, expect in (("save_map", "saved 8 submaps"), ("reset", "global map cleared")):
-        result = _call(node, joiner, service)
+        result = call_trigger(node, f"/{joiner.namespace}/joiner/{service}")
         assert result.success and expect in result.message
     assert (saved / "poses.txt").exists() and (saved / "global_map_bag" / "metadata.yaml").exists()
     back = [decode_map(*parts_of(r.raw)) for r in read_messages(saved / "global_map_bag")]

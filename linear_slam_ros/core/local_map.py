@@ -421,6 +421,13 @@ class LocalMap(VariableLayout):
             return int(self.info.count_nonzero())
         return int(np.count_nonzero(self.info))
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the map's arrays: estimate, ids, kinds and information (dense, or CSR's three arrays)."""
+        info = self.info
+        info_bytes = info.nbytes if isinstance(info, np.ndarray) else info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
+        return int(self.x.nbytes + self.ids.nbytes + self.kinds.nbytes + info_bytes)
+
 
 def _describe_key(key: int) -> str:
     kind = "pose" if key % 2 == POSE else "feature"

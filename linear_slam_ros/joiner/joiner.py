@@ -363,13 +363,6 @@ FIRST_SEQ = 1
 """Sequence number of a stream's first submap (the bag tools and the layout examples start at 1)."""
 
 
-def _nbytes(submap: LocalMap) -> int:
-    """Bytes of a submap's arrays (what it holds in the reorder buffer)."""
-    info = submap.info
-    info_bytes = info.nbytes if isinstance(info, np.ndarray) else info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
-    return int(submap.x.nbytes + submap.ids.nbytes + submap.kinds.nbytes + info_bytes)
-
-
 @dataclass
 class Joiner:
     """Sequencing and bookkeeping around :func:`join_step` (mutable; owned by one thread).
@@ -495,7 +488,7 @@ class Joiner:
             self._pending[""][seq] = submap
         for robot, seq, submap in saved.robot_pending:
             self._pending[robot][seq] = submap
-        self._pending_bytes = sum(_nbytes(m) for waiting in self._pending.values() for m in waiting.values())
+        self._pending_bytes = sum(m.nbytes for waiting in self._pending.values() for m in waiting.values())
         self._progress_at = collections.defaultdict(self.clock, {r: self.clock() for r in ("", *self._pending)})
         self.n_skipped = saved.n_skipped
         self.join_seconds.clear()
@@ -548,7 +541,7 @@ class Joiner:
         _ = self._progress_at[robot]  # a new robot's stream starts its clock now
         if seq > self.expected_of(robot):
             self._pending[robot][seq] = submap
-            self._pending_bytes += _nbytes(submap)
+            self._pending_bytes += submap.nbytes
             return self._relieve(robot)
         return self._join(submap, seq, robot) + self._drain(robot)
 
@@ -590,7 +583,7 @@ class Joiner:
                 joined += self._skip_gap(robot, f"the reorder buffer holds {len(waiting)} submaps, {self._pending_bytes} bytes")
                 continue
             far = max(waiting)
-            self._pending_bytes -= _nbytes(waiting.pop(far))
+            self._pending_bytes -= waiting.pop(far).nbytes
             self.reject(
                 "reorder_buffer_full",
                 f"{self._who(far, robot)} dropped: it waits for seq {self.expected_of(robot)} and the reorder buffer "
@@ -616,7 +609,7 @@ class Joiner:
         while self.expected_of(robot) in waiting:
             seq = self.expected_of(robot)
             submap = waiting.pop(seq)
-            self._pending_bytes -= _nbytes(submap)
+            self._pending_bytes -= submap.nbytes
             done = self._join(submap, seq, robot)
             if not done and self.expected_of(robot) == seq:  # rejected: its number stays open for a valid one
                 break

@@ -11,6 +11,15 @@ written as:
   dataclasses by ``{"__type__": name, "fields": {...}}``) and ``sha256``: the hash of the tree's
   JSON and of every array's dtype, shape and bytes in key order.
 
+A merge of online divide and conquer not computed yet (:class:`~linear_slam_ros.joining.divide_conquer.Deferred`)
+is written as its two inputs and rebuilt as the same merge: writing a state never computes or waits
+for a merge. With a :class:`BlobStore` (the node's state directory), every map of at least
+:data:`BLOB_MIN_BYTES` is written once, as its own state file named by its checksum
+(``blobs/<sha256>.npz``), and referenced by name (``{"__blob__": name}``, listed in the header's
+``blobs``): the large levels of the online divide-and-conquer stack do not change between
+snapshots, so a snapshot writes only the maps made since the one before. A file written without
+a store (``~/save_map``, the CLI's ``--save-state``) holds everything itself.
+
 Loading never executes code: ``numpy.load`` with ``allow_pickle=False``, and only the classes in
 :data:`CLASSES` are rebuilt (layout caches are left out and rebuilt on demand). A file that is
 truncated, fails its checksum or has another format version raises :class:`SnapshotError` naming
@@ -28,6 +37,8 @@ import io
 import json
 import logging
 import os
+import re
+import weakref
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -53,15 +64,22 @@ from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 logger = logging.getLogger(__name__)
 
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4
 """Bumped whenever the tree of a state changes; a file of another version is refused, but for the
 versions in :data:`MIGRATED` (2: chains and streams, for islands and several robots; 3: the χ² gate's
-variance factor, ``JoinerState.variance``)."""
+variance factor, ``JoinerState.variance``; 4: deferred merges and blob references)."""
 
-MIGRATED = {2: "the χ² gate's variance factor starts afresh (version 2 did not keep one)"}
-"""Older versions still read, and what reading them changes: a version 2 tree has no
-``JoinerState.variance``, which takes its default (:class:`~linear_slam_ros.joining.gate.VarianceFactor`,
-the prior alone); everything else is read exactly."""
+MIGRATED: dict[int, str | None] = {
+    2: "the χ² gate's variance factor starts afresh (version 2 did not keep one)",
+    3: None,
+}
+"""Older versions still read, and what reading them changes (``None``: nothing, no warning): a
+version 2 tree has no ``JoinerState.variance``, which takes its default
+(:class:`~linear_slam_ros.joining.gate.VarianceFactor`, the prior alone); everything else is read
+exactly. A version 3 tree is a version 4 tree without deferred merges or blobs."""
+
+BLOB_MIN_BYTES = 256 << 10
+"""Maps of at least this many bytes of arrays are written as blobs when a :class:`BlobStore` is given."""
 
 
 class SnapshotError(LinearSlamError):
@@ -94,8 +112,10 @@ CACHE_FIELDS = frozenset({"layout"})
 
 
 class _Encoder:
-    def __init__(self) -> None:
+    def __init__(self, blobs: BlobStore | None = None) -> None:
         self.arrays: dict[str, npt.NDArray[Any]] = {}
+        self.blobs = blobs
+        self.blob_names: list[str] = []
 
     def array(self, value: npt.NDArray[Any]) -> str:
         key = f"a{len(self.arrays)}"
@@ -118,8 +138,15 @@ class _Encoder:
             return {"__csr__": arrays, "shape": list(value.shape)}
         if isinstance(value, tuple | list):
             return {"__tuple__": [self.encode(v) for v in value]}
-        if isinstance(value, Deferred):  # a join still to compute: written as its result (waits for it)
-            return self.encode(value.value())
+        if isinstance(value, Deferred):
+            inputs = value.inputs  # read once: a worker may finish the merge meanwhile (then None)
+            if inputs is None:
+                return self.encode(value.value())
+            return {"__deferred__": [self.encode(inputs[0]), self.encode(inputs[1])], "count": value.count}
+        if isinstance(value, LocalMap) and self.blobs is not None and value.nbytes >= self.blobs.min_bytes:
+            name = self.blobs.put(value)
+            self.blob_names.append(name)
+            return {"__blob__": name}
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             name = type(value).__name__
             if name not in CLASSES:
@@ -141,51 +168,182 @@ def _checksum(tree_json: bytes, arrays: dict[str, npt.NDArray[Any]]) -> str:
     return digest.hexdigest()
 
 
-def encode_state(state: Any) -> dict[str, npt.NDArray[Any]]:
+def encode_state(state: Any, blobs: BlobStore | None = None) -> dict[str, npt.NDArray[Any]]:
     """Return the arrays of a state file (``header`` included) for ``state``.
 
+    Args:
+        state: the value to write.
+        blobs: where maps of at least :data:`BLOB_MIN_BYTES` go (written there now unless they
+            already are); ``None`` keeps everything in the returned arrays.
+
     Raises:
-        SnapshotError: the state holds a value a state file cannot hold.
+        SnapshotError: the state holds a value a state file cannot hold, or a blob cannot be written.
     """
-    enc = _Encoder()
+    enc = _Encoder(blobs)
     tree = enc.encode(state)
     tree_json = json.dumps(tree, sort_keys=True, allow_nan=False).encode()
-    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "tree": tree, "sha256": _checksum(tree_json, enc.arrays)}
+    header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "tree": tree, "sha256": _checksum(tree_json, enc.arrays),
+              "blobs": sorted(set(enc.blob_names))}
     return {"header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **enc.arrays}
 
 
-def write_snapshot(path: Path, state: Any) -> None:
+def _write_atomically(path: Path, arrays: dict[str, npt.NDArray[Any]], sync_folder: bool = True) -> None:
+    """Write a state file: temporary file, fsync, rename (and fsync of the folder).
+
+    Raises:
+        OSError: the file cannot be written.
+    """
+    tmp = path.with_name(f".{path.name}.tmp")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(tmp, "wb") as fh:
+        np.savez(fh, allow_pickle=False, **arrays)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    if sync_folder:
+        _sync_folder(path.parent)
+
+
+def _sync_folder(folder: Path) -> None:
+    dir_fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> None:
     """Write ``state`` to ``path`` atomically (temporary file, fsync, rename, fsync of the folder).
+
+    Args:
+        path: the state file.
+        state: the value to write.
+        blobs: with a store, its new blobs are written (and their folder synced) before the state
+            file, so a state file on disk never names a blob the disk lacks.
 
     Raises:
         SnapshotError: the state cannot be encoded, or the file cannot be written (names the path).
     """
     path = Path(path)
-    arrays = encode_state(state)
-    tmp = path.with_name(f".{path.name}.tmp")
+    arrays = encode_state(state, blobs)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(tmp, "wb") as fh:
-            np.savez(fh, allow_pickle=False, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
+        if blobs is not None:
+            blobs.sync()
+        _write_atomically(path, arrays)
     except OSError as exc:
         raise SnapshotError(f"cannot write state file {path}: {exc}") from None
+
+
+class BlobStore:
+    """A folder of maps written once each, named by their checksum, shared by the snapshots beside it.
+
+    A map already written (the same object: states are immutable values) is not encoded again; a
+    map equal to a blob already in the folder is not written again. :meth:`collect` deletes the
+    blobs no kept snapshot names.
+
+    Attributes:
+        folder: where the blobs are (``<name>.npz``).
+        min_bytes: maps of fewer bytes of arrays stay in the state file.
+    """
+
+    def __init__(self, folder: Path, min_bytes: int = BLOB_MIN_BYTES) -> None:
+        self.folder = Path(folder)
+        self.min_bytes = min_bytes
+        self._written: dict[int, tuple[weakref.ref[LocalMap], str]] = {}
+        self._unsynced = False
+
+    def path(self, name: str) -> Path:
+        """Return the file of blob ``name``."""
+        return self.folder / f"{name}.npz"
+
+    def put(self, local_map: LocalMap) -> str:
+        """Return the name of ``local_map``'s blob, writing it (not yet synced: :meth:`sync`) when new.
+
+        Raises:
+            SnapshotError: the blob cannot be written (names the file).
+        """
+        known = self._written.get(id(local_map))
+        if known is not None and known[0]() is local_map and self.path(known[1]).exists():
+            return known[1]
+        arrays = encode_state(local_map)
+        name = json.loads(bytes(arrays["header"]).decode())["sha256"]
+        path = self.path(name)
+        if not path.exists():
+            try:
+                _write_atomically(path, arrays, sync_folder=False)
+            except OSError as exc:
+                raise SnapshotError(f"cannot write blob {path}: {exc}") from None
+            self._unsynced = True
+        self._written[id(local_map)] = (weakref.ref(local_map), name)
+        return name
+
+    def sync(self) -> None:
+        """Make the blobs written since the last call durable (fsync of the folder)."""
+        if self._unsynced:
+            _sync_folder(self.folder)
+            self._unsynced = False
+        self._written = {k: v for k, v in self._written.items() if v[0]() is not None}
+
+    def read(self, name: Any, where: str) -> Any:
+        """Return the map of blob ``name``, checked as a state file is, and against its name.
+
+        Raises:
+            SnapshotError: the name is malformed, or the blob is missing, corrupt, or not the one named.
+        """
+        if not isinstance(name, str) or not _BLOB_NAME.match(name):
+            raise SnapshotError(f"state file {where}: malformed blob name {str(name)[:80]!r}")
+        path = self.path(name)
+        arrays = _read_arrays(path)
+        value = decode_state(arrays, str(path))  # checks the header, the version and the checksum
+        if json.loads(bytes(arrays["header"]).decode())["sha256"] != name or not isinstance(value, LocalMap):
+            raise SnapshotError(f"blob {path} is not the map state file {where} names (the file is corrupt)")
+        return value
+
+    def collect(self, keep: set[str]) -> int:
+        """Delete the blobs (and left-over temporary files) not named in ``keep``; return how many.
+
+        Raises:
+            OSError: the folder cannot be listed.
+        """
+        removed = 0
+        if not self.folder.is_dir():
+            return 0
+        for p in self.folder.iterdir():
+            name = p.name.removesuffix(".npz")
+            if p.name.endswith(".tmp") or (p.name.endswith(".npz") and name not in keep):
+                p.unlink(missing_ok=True)
+                removed += 1
+        return removed
+
+
+_BLOB_NAME = re.compile(r"^[0-9a-f]{64}$")
+
+
+def blob_names(path: Path) -> set[str]:
+    """Return the blobs state file ``path`` names (reads its header only).
+
+    Raises:
+        SnapshotError: the file is missing or its header cannot be read.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            header = json.loads(bytes(npz["header"]).decode())
+    except FileNotFoundError:
+        raise SnapshotError(f"state file {path} does not exist") from None
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+        raise SnapshotError(f"state file {path}: header cannot be read ({exc})") from None
+    names = header.get("blobs", []) if isinstance(header, dict) else []
+    return {n for n in names if isinstance(n, str)}
 
 
 # ------------------------------------------------------------------------------------ decoding
 
 
 class _Decoder:
-    def __init__(self, arrays: dict[str, npt.NDArray[Any]], where: str) -> None:
+    def __init__(self, arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobStore | None) -> None:
         self.arrays = arrays
         self.where = where
+        self.blobs = blobs
 
     def array(self, key: Any) -> npt.NDArray[Any]:
         if not isinstance(key, str) or key not in self.arrays:
@@ -211,6 +369,13 @@ class _Decoder:
             return sp.csr_matrix((data, indices, indptr), shape=tuple(node["shape"]))
         if "__tuple__" in node:
             return tuple(self.decode(v) for v in node["__tuple__"])
+        if "__deferred__" in node:
+            left, right = (self.decode(v) for v in node["__deferred__"])
+            return Deferred(left, right, int(node["count"]))
+        if "__blob__" in node:
+            if self.blobs is None:
+                raise SnapshotError(f"state file {self.where} names blob {node['__blob__']!r} and has no blob folder")
+            return self.blobs.read(node["__blob__"], self.where)
         if "__type__" in node:
             build = CLASSES.get(node["__type__"])
             if build is None:
@@ -219,8 +384,10 @@ class _Decoder:
         raise SnapshotError(f"state file {self.where}: unexpected entry {str(node)[:60]!r}")
 
 
-def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>") -> Any:
+def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>", blobs: BlobStore | None = None) -> Any:
     """Rebuild a state from the arrays of a state file, checking format, version and checksum.
+
+    Blobs the tree names are read from ``blobs`` (each checked the same way).
 
     Raises:
         SnapshotError: no header, another format or version, a checksum mismatch, or a malformed tree.
@@ -243,28 +410,37 @@ def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>") -
     tree_json = json.dumps(header.get("tree"), sort_keys=True, allow_nan=False).encode()
     if _checksum(tree_json, body) != header.get("sha256"):
         raise SnapshotError(f"state file {where}: checksum mismatch (the file is corrupt)")
-    if version != FORMAT_VERSION:
+    if version != FORMAT_VERSION and MIGRATED[version] is not None:
         logger.warning("state file %s: format version %s read by this build (version %d): %s", where, version,
                        FORMAT_VERSION, MIGRATED[version])
     try:
-        return _Decoder(body, where).decode(header["tree"])
+        return _Decoder(body, where, blobs).decode(header["tree"])
     except (KeyError, TypeError, ValueError) as exc:
         raise SnapshotError(f"state file {where}: malformed state ({type(exc).__name__}: {exc})") from None
 
 
-def read_snapshot(path: Path) -> Any:
-    """Read a state written by :func:`write_snapshot`.
-
-    Raises:
-        SnapshotError: the file is missing, truncated, corrupt or of another format version (names the file).
-    """
-    path = Path(path)
+def _read_arrays(path: Path) -> dict[str, npt.NDArray[Any]]:
     try:
         data = path.read_bytes()
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
-            arrays = {k: npz[k] for k in npz.files}
+            return {k: npz[k] for k in npz.files}
     except FileNotFoundError:
         raise SnapshotError(f"state file {path} does not exist") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
         raise SnapshotError(f"state file {path} cannot be read (truncated or not a state file: {exc})") from None
-    return decode_state(arrays, str(path))
+
+
+def read_snapshot(path: Path, blobs: BlobStore | None = None) -> Any:
+    """Read a state written by :func:`write_snapshot`.
+
+    Args:
+        path: the state file.
+        blobs: the store its blobs are in; ``None``: the folder ``blobs`` beside the file (where
+            the node's state directory keeps them).
+
+    Raises:
+        SnapshotError: the file (or a blob it names) is missing, truncated, corrupt or of another
+            format version (names the file).
+    """
+    path = Path(path)
+    return decode_state(_read_arrays(path), str(path), blobs if blobs is not None else BlobStore(path.parent / "blobs"))

@@ -4,6 +4,9 @@ Layout of ``state_dir``::
 
     journal/                  rosbag2 bag (MCAP): every accepted local_map / pose_graph message, raw
     snapshots/state_<n>.npz   exact joiner state including the first n journal records (two kept)
+    snapshots/blobs/<sha256>.npz
+                              the large maps the snapshots name, each written once (see
+                              linear_slam_ros.joiner.snapshot); those no kept snapshot names are deleted
 
 Recovery (:meth:`StateStore.recover`): the newest snapshot that reads back intact is restored
 (a truncated one, one that fails its checksum or one of another format version is reported and
@@ -25,7 +28,7 @@ from pathlib import Path
 
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner
-from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
+from linear_slam_ros.joiner.snapshot import BLOB_MIN_BYTES, BlobStore, SnapshotError, blob_names, read_snapshot, write_snapshot
 from linear_slam_ros.ros.journal import Journal, read_journal
 
 logger = logging.getLogger(__name__)
@@ -60,14 +63,17 @@ class Recovery:
 class StateStore:
     """A node's state directory: journal appends, periodic snapshots, recovery.
 
+    Maps of at least ``blob_min_bytes`` bytes are written as blobs, once each (see :class:`BlobStore`).
+
     Not thread-safe by itself: the node appends from its joining thread and snapshots from its
     output thread, each call on its own file.
     """
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, blob_min_bytes: int = BLOB_MIN_BYTES) -> None:
         self.folder = Path(folder)
         self.journal_dir = self.folder / "journal"
         self.snapshot_dir = self.folder / "snapshots"
+        self.blobs = BlobStore(self.snapshot_dir / "blobs", blob_min_bytes)
         self._journal: Journal | None = None
 
     def has_state(self) -> bool:
@@ -99,7 +105,7 @@ class StateStore:
         records_in_snapshot = 0
         for _, path in self.snapshots():
             try:
-                saved = read_snapshot(path)
+                saved = read_snapshot(path, self.blobs)
             except SnapshotError as exc:
                 problems.append(f"{exc}: falling back to an older point")
                 continue
@@ -143,15 +149,27 @@ class StateStore:
         return self._journal
 
     def write_snapshot(self, saved: SavedJoiner) -> Path:
-        """Write a snapshot (atomically) and delete all but the :data:`SNAPSHOTS_KEPT` newest.
+        """Write a snapshot (atomically; only its maps not written before), then delete all but the
+        :data:`SNAPSHOTS_KEPT` newest and the blobs none of those names.
 
         Raises:
             SnapshotError: the snapshot cannot be written (names the file).
         """
         path = self.snapshot_dir / f"state_{saved.journal_records}.npz"
-        write_snapshot(path, saved)
-        for _, old in self.snapshots()[SNAPSHOTS_KEPT:]:
+        write_snapshot(path, saved, self.blobs)
+        snapshots = self.snapshots()
+        for _, old in snapshots[SNAPSHOTS_KEPT:]:
             old.unlink(missing_ok=True)
+        keep: set[str] = set()
+        for _, kept in snapshots[:SNAPSHOTS_KEPT]:
+            try:
+                keep |= blob_names(kept)
+            except SnapshotError as exc:  # an unreadable snapshot is never restored: its blobs may go
+                logger.warning("%s", exc)
+        try:
+            self.blobs.collect(keep)
+        except OSError as exc:
+            logger.warning("cannot delete the unused blobs of %s: %s", self.blobs.folder, exc)
         return path
 
     def close(self) -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import gc
 import io
 import json
+import threading
 import zipfile
 from dataclasses import replace
 
@@ -16,13 +18,16 @@ from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, gate_step, global
 from linear_slam_ros.joiner.registry import STRATEGIES
 from linear_slam_ros.joiner.snapshot import (
     FORMAT_VERSION,
+    BlobStore,
     SnapshotError,
     _checksum,
+    blob_names,
     decode_state,
     encode_state,
     read_snapshot,
     write_snapshot,
 )
+from linear_slam_ros.joining.divide_conquer import Deferred
 from linear_slam_ros.joining.gate import VarianceFactor
 
 
@@ -127,6 +132,11 @@ def _arrays(path):
         return {k: npz[k] for k in npz.files}
 
 
+def _arrays_of(data):
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        return {k: npz[k] for k in npz.files}
+
+
 def _rewrite(path, arrays):
     buf = io.BytesIO()
     np.savez(buf, **arrays)
@@ -195,3 +205,96 @@ def test_values_a_state_file_cannot_hold_are_refused():
         encode_state({1, 2})
     with pytest.raises(SnapshotError, match="cannot write a Joiner: not a class a state file may hold"):
         encode_state(Joiner("sequential"))
+
+
+def _deferred_joiner(maps, n):
+    """An online-D&C joiner whose every merge is deferred and, with no worker, left to compute."""
+    j = Joiner("online-dc", defer_above=0)
+    for seq, m in enumerate(maps[:n], start=1):
+        j.offer(m, seq)
+    return j
+
+
+def test_a_merge_not_computed_yet_is_written_as_its_inputs_without_computing_or_waiting(maps, tmp_path):
+    j = _deferred_joiner(maps, 6)
+    pending = [e for e in j.state.joined.stack if isinstance(e, Deferred)]
+    assert pending and not any(e.done for e in pending)
+    held = pending[0]._lock  # a worker busy with the merge holds it: writing must not wait for it
+    with held:
+        writer = threading.Thread(target=write_snapshot, args=(tmp_path / "state.npz", j.save()))
+        writer.start()
+        writer.join(timeout=30.0)
+        assert not writer.is_alive()
+    assert not any(e.done for e in pending)  # nothing was computed by writing
+    restored = read_snapshot(tmp_path / "state.npz")
+    again = [e for e in restored.state.joined.stack if isinstance(e, Deferred)]
+    assert len(again) == len(pending) and not any(e.done for e in again)
+    assert [e.count for e in again] == [e.count for e in pending]
+    _same(global_result(restored.state), global_result(j.state))  # the same merges, bit for bit
+
+
+def test_large_maps_are_written_once_as_blobs_named_by_checksum(maps, tmp_path):
+    j = Joiner("online-dc")
+    for seq, m in enumerate(maps[:8], start=1):
+        j.offer(m, seq)
+    blobs = BlobStore(tmp_path / "blobs", min_bytes=0)
+    write_snapshot(tmp_path / "a.npz", j.save(), blobs)
+    first = sorted(p.name for p in blobs.folder.iterdir())
+    names = blob_names(tmp_path / "a.npz")
+    assert first == sorted(f"{n}.npz" for n in names) and len(names) == len(j.state.joined.stack)
+    mtimes = {p.name: p.stat().st_mtime_ns for p in blobs.folder.iterdir()}
+    j.offer(maps[8], 9)  # the 8-submap level stays; a new 1-submap level comes
+    write_snapshot(tmp_path / "b.npz", j.save(), blobs)
+    after = {p.name: p.stat().st_mtime_ns for p in blobs.folder.iterdir()}
+    assert len(after) == len(mtimes) + 1 and all(after[n] == t for n, t in mtimes.items())  # none rewritten
+    _same(read_snapshot(tmp_path / "b.npz"), read_snapshot(tmp_path / "b.npz", blobs))  # found beside the file
+    _same(read_snapshot(tmp_path / "b.npz").state, j.save().state)
+    write_snapshot(tmp_path / "whole.npz", j.save())  # without a store, the file holds everything
+    assert blob_names(tmp_path / "whole.npz") == set()
+    _same(read_snapshot(tmp_path / "whole.npz").state, j.save().state)
+    assert blobs.collect(blob_names(tmp_path / "b.npz")) == 0  # b names every blob: a's levels are b's
+    del j
+    gc.collect()
+    blobs.sync()  # forgets the maps that are gone: the joined 8-submap level; submap 9 lives on in maps
+    assert [ref() for ref, _ in blobs._written.values()] == [maps[8]]
+
+
+def test_blob_corruptions_are_named_and_never_loaded(maps, tmp_path):
+    j = Joiner("online-dc")
+    for seq, m in enumerate(maps[:4], start=1):
+        j.offer(m, seq)
+    blobs = BlobStore(tmp_path / "blobs", min_bytes=0)
+    write_snapshot(tmp_path / "state.npz", j.save(), blobs)
+    (name,) = blob_names(tmp_path / "state.npz")
+    blob = blobs.path(name)
+    data = blob.read_bytes()
+
+    blob.write_bytes(data[: len(data) // 2])
+    with pytest.raises(SnapshotError, match=rf"state file .*{name}.npz cannot be read \(truncated"):
+        read_snapshot(tmp_path / "state.npz")
+
+    arrays = _arrays_of(data)  # one number changed
+    key = next(k for k in arrays if k != "header" and arrays[k].dtype == np.float64 and arrays[k].size)
+    arrays[key] = arrays[key].copy()
+    arrays[key].flat[0] += 1e-12
+    _rewrite(blob, arrays)
+    with pytest.raises(SnapshotError, match=rf"{name}.npz: checksum mismatch"):
+        read_snapshot(tmp_path / "state.npz")
+
+    other = BlobStore(tmp_path / "other", min_bytes=0)  # a valid blob of another map under this name
+    _rewrite(blob, encode_state(maps[0]))
+    with pytest.raises(SnapshotError, match=rf"blob .*{name}.npz is not the map state file .*state.npz names"):
+        read_snapshot(tmp_path / "state.npz")
+
+    blob.unlink()
+    with pytest.raises(SnapshotError, match=rf"{name}.npz does not exist"):
+        read_snapshot(tmp_path / "state.npz")
+    with pytest.raises(SnapshotError, match="has no blob folder"):
+        decode_state(_arrays(tmp_path / "state.npz"))
+    with pytest.raises(SnapshotError, match="malformed blob name '../x'"):
+        other.read("../x", "here")
+    (tmp_path / "garbage.npz").write_bytes(b"garbage")
+    with pytest.raises(SnapshotError, match="garbage.npz: header cannot be read"):
+        blob_names(tmp_path / "garbage.npz")
+    with pytest.raises(SnapshotError, match="nothing.npz does not exist"):
+        blob_names(tmp_path / "nothing.npz")

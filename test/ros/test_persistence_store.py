@@ -8,6 +8,7 @@ import pytest
 from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner, global_result
+from linear_slam_ros.joiner.snapshot import blob_names
 from linear_slam_ros.ros.persistence import SNAPSHOTS_KEPT, StateStore
 from msg_adapters import decode_map, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize
@@ -28,9 +29,9 @@ def _offer_to(joiner):
     return offer
 
 
-def _session(folder, messages, snapshot_every, mode="online-dc"):
+def _session(folder, messages, snapshot_every, mode="online-dc", blob_min_bytes=None):
     """What the node does: journal each message, offer it, snapshot every ``snapshot_every``; no clean close."""
-    store = StateStore(folder)
+    store = StateStore(folder) if blob_min_bytes is None else StateStore(folder, blob_min_bytes)
     joiner = Joiner(mode)
     store.recover(joiner, _offer_to(joiner))
     journal = store.open_journal()
@@ -113,3 +114,29 @@ def test_a_snapshot_of_another_mode_refuses_to_start(messages, tmp_path):
     joiner = Joiner("online-dc")
     with pytest.raises(ConfigError, match="the saved map was joined with mode='sequential'"):
         StateStore(tmp_path).recover(joiner, _offer_to(joiner))
+
+
+def test_snapshots_write_each_large_map_once_and_delete_the_blobs_no_kept_snapshot_names(messages, tmp_path):
+    _session(tmp_path, messages[:14], snapshot_every=3, blob_min_bytes=0)  # snapshots at 3, 6, 9, 12
+    store = StateStore(tmp_path)
+    assert [n for n, _ in store.snapshots()] == [12, 9]
+    named = set().union(*(blob_names(path) for _, path in store.snapshots()))
+    assert {p.name for p in store.blobs.folder.iterdir()} == {f"{n}.npz" for n in named}
+    assert blob_names(tmp_path / "snapshots" / "state_12.npz") & blob_names(tmp_path / "snapshots" / "state_9.npz")
+    joiner = Joiner("online-dc")
+    recovery = store.recover(joiner, _offer_to(joiner))
+    assert (recovery.snapshot.name, recovery.replayed, recovery.problems) == ("state_12.npz", 2, ())
+    assert global_result(joiner.state).x.tobytes() == global_result(_reference(messages[:14]).state).x.tobytes()
+
+
+def test_a_corrupt_blob_falls_back_to_an_older_point(messages, tmp_path):
+    _session(tmp_path, messages[:7], snapshot_every=3, blob_min_bytes=0)
+    newest = tmp_path / "snapshots" / "state_6.npz"
+    only_newest = blob_names(newest) - blob_names(tmp_path / "snapshots" / "state_3.npz")
+    blob = StateStore(tmp_path).blobs.path(sorted(only_newest)[0])
+    blob.write_bytes(blob.read_bytes()[:-100])
+    joiner = Joiner("online-dc")
+    recovery = StateStore(tmp_path).recover(joiner, _offer_to(joiner))
+    assert recovery.snapshot.name == "state_3.npz" and recovery.replayed == 4
+    assert any(blob.name in p and "falling back to an older point" in p for p in recovery.problems)
+    assert global_result(joiner.state).x.tobytes() == global_result(_reference(messages[:7]).state).x.tobytes()

@@ -164,7 +164,8 @@ def _checksum(tree_json: bytes, arrays: dict[str, npt.NDArray[Any]]) -> str:
         a = arrays[key]
         fortran = bool(a.flags.f_contiguous and not a.flags.c_contiguous)
         digest.update(f"{key}:{a.dtype.str}:{a.shape}:{fortran}".encode())
-        digest.update(a.tobytes(order="A"))
+        contiguous = a if a.flags.c_contiguous or a.flags.f_contiguous else np.ascontiguousarray(a)
+        digest.update(contiguous.reshape(-1, order="A").view(np.uint8))  # the bytes of tobytes(order="A"), uncopied
     return digest.hexdigest()
 
 
@@ -187,8 +188,8 @@ def encode_state(state: Any, blobs: BlobStore | None = None) -> dict[str, npt.ND
     return {"header": np.frombuffer(json.dumps(header).encode(), dtype=np.uint8), **enc.arrays}
 
 
-def _write_atomically(path: Path, arrays: dict[str, npt.NDArray[Any]], sync_folder: bool = True) -> None:
-    """Write a state file: temporary file, fsync, rename (and fsync of the folder).
+def _stage(path: Path, arrays: dict[str, npt.NDArray[Any]]) -> Path:
+    """Write a state file's bytes to a temporary file beside ``path`` (not synced); return its path.
 
     Raises:
         OSError: the file cannot be written.
@@ -197,11 +198,21 @@ def _write_atomically(path: Path, arrays: dict[str, npt.NDArray[Any]], sync_fold
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(tmp, "wb") as fh:
         np.savez(fh, allow_pickle=False, **arrays)
-        fh.flush()
-        os.fsync(fh.fileno())
+    return tmp
+
+
+def _commit(tmp: Path, path: Path) -> None:
+    """Fsync a staged file and rename it over ``path`` (the folder is synced by the caller).
+
+    Raises:
+        OSError: the file cannot be synced or renamed.
+    """
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
     os.replace(tmp, path)
-    if sync_folder:
-        _sync_folder(path.parent)
 
 
 def _sync_folder(folder: Path) -> None:
@@ -225,11 +236,13 @@ def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> No
         SnapshotError: the state cannot be encoded, or the file cannot be written (names the path).
     """
     path = Path(path)
-    arrays = encode_state(state, blobs)
+    arrays = encode_state(state, blobs)  # stages the new blobs
     try:
+        tmp = _stage(path, arrays)  # every byte is written before the first fsync: one journal commit for most
         if blobs is not None:
             blobs.sync()
-        _write_atomically(path, arrays)
+        _commit(tmp, path)
+        _sync_folder(path.parent)
     except OSError as exc:
         raise SnapshotError(f"cannot write state file {path}: {exc}") from None
 
@@ -237,9 +250,10 @@ def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> No
 class BlobStore:
     """A folder of maps written once each, named by their checksum, shared by the snapshots beside it.
 
-    A map already written (the same object: states are immutable values) is not encoded again; a
-    map equal to a blob already in the folder is not written again. :meth:`collect` deletes the
-    blobs no kept snapshot names.
+    A map written or read by this store (the same object: states are immutable values) is not
+    encoded again. A new blob is staged in a temporary file and made durable by :meth:`sync`
+    (fsync, rename, fsync of the folder), so a file named like a blob is always whole.
+    :meth:`collect` deletes the blobs no kept snapshot names.
 
     Attributes:
         folder: where the blobs are (``<name>.npz``).
@@ -250,7 +264,7 @@ class BlobStore:
         self.folder = Path(folder)
         self.min_bytes = min_bytes
         self._written: dict[int, tuple[weakref.ref[LocalMap], str]] = {}
-        self._unsynced = False
+        self._staged: dict[str, Path] = {}  # blob name -> temporary file
 
     def path(self, name: str) -> Path:
         """Return the file of blob ``name``."""
@@ -263,25 +277,37 @@ class BlobStore:
             SnapshotError: the blob cannot be written (names the file).
         """
         known = self._written.get(id(local_map))
-        if known is not None and known[0]() is local_map and self.path(known[1]).exists():
+        if known is not None and known[0]() is local_map and (known[1] in self._staged or self.path(known[1]).exists()):
             return known[1]
         arrays = encode_state(local_map)
         name = json.loads(bytes(arrays["header"]).decode())["sha256"]
         path = self.path(name)
-        if not path.exists():
-            try:
-                _write_atomically(path, arrays, sync_folder=False)
-            except OSError as exc:
-                raise SnapshotError(f"cannot write blob {path}: {exc}") from None
-            self._unsynced = True
-        self._written[id(local_map)] = (weakref.ref(local_map), name)
+        try:
+            self._staged[name] = _stage(path, arrays)
+        except OSError as exc:
+            raise SnapshotError(f"cannot write blob {path}: {exc}") from None
+        self._remember(local_map, name)
         return name
 
+    def _remember(self, local_map: LocalMap, name: str) -> None:
+        self._written[id(local_map)] = (weakref.ref(local_map), name)
+
     def sync(self) -> None:
-        """Make the blobs written since the last call durable (fsync of the folder)."""
-        if self._unsynced:
-            _sync_folder(self.folder)
-            self._unsynced = False
+        """Make the blobs staged since the last call durable: fsync, rename, fsync of the folder.
+
+        Raises:
+            OSError: a blob cannot be synced or renamed (then every map is written afresh next time).
+        """
+        try:
+            if self._staged:
+                for name, tmp in self._staged.items():
+                    _commit(tmp, self.path(name))
+                _sync_folder(self.folder)
+        except OSError:
+            self._written.clear()
+            raise
+        finally:
+            self._staged.clear()
         self._written = {k: v for k, v in self._written.items() if v[0]() is not None}
 
     def read(self, name: Any, where: str) -> Any:
@@ -297,6 +323,7 @@ class BlobStore:
         value = decode_state(arrays, str(path))  # checks the header, the version and the checksum
         if json.loads(bytes(arrays["header"]).decode())["sha256"] != name or not isinstance(value, LocalMap):
             raise SnapshotError(f"blob {path} is not the map state file {where} names (the file is corrupt)")
+        self._remember(value, name)  # a restored state's levels are not written again
         return value
 
     def collect(self, keep: set[str]) -> int:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gc
+import hashlib
 import io
 import json
 import threading
@@ -298,3 +299,18 @@ def test_blob_corruptions_are_named_and_never_loaded(maps, tmp_path):
         blob_names(tmp_path / "garbage.npz")
     with pytest.raises(SnapshotError, match="nothing.npz does not exist"):
         blob_names(tmp_path / "nothing.npz")
+
+
+def test_the_checksum_is_the_documented_hash_of_every_array_in_memory_order():
+    arrays = {
+        "a0": np.asfortranarray(np.arange(12.0).reshape(3, 4)),
+        "a1": np.arange(24.0).reshape(4, 6)[:, ::2],  # not contiguous: hashed in C order
+        "a2": np.array(3.0),
+        "a3": np.zeros((0, 3), dtype=np.int8),
+    }
+    expected = hashlib.sha256(b"tree")
+    for key, a in arrays.items():
+        fortran = bool(a.flags.f_contiguous and not a.flags.c_contiguous)
+        expected.update(f"{key}:{a.dtype.str}:{a.shape}:{fortran}".encode())
+        expected.update(a.tobytes(order="A"))
+    assert _checksum(b"tree", arrays) == expected.hexdigest()

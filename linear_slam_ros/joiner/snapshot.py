@@ -165,7 +165,7 @@ def _checksum(tree_json: bytes, arrays: dict[str, npt.NDArray[Any]]) -> str:
         fortran = bool(a.flags.f_contiguous and not a.flags.c_contiguous)
         digest.update(f"{key}:{a.dtype.str}:{a.shape}:{fortran}".encode())
         contiguous = a if a.flags.c_contiguous or a.flags.f_contiguous else np.ascontiguousarray(a)
-        digest.update(contiguous.reshape(-1, order="A").view(np.uint8))  # the bytes of tobytes(order="A"), uncopied
+        digest.update(contiguous.reshape(-1, order="A").view(np.uint8).data)  # the bytes of tobytes(order="A"), uncopied
     return digest.hexdigest()
 
 

@@ -398,6 +398,8 @@ class _Decoder:
             return tuple(self.decode(v) for v in node["__tuple__"])
         if "__deferred__" in node:
             left, right = (self.decode(v) for v in node["__deferred__"])
+            if not all(isinstance(e, LocalMap | Deferred) for e in (left, right)):
+                raise SnapshotError(f"state file {self.where}: a deferred merge of something other than maps")
             return Deferred(left, right, int(node["count"]))
         if "__blob__" in node:
             if self.blobs is None:

@@ -314,3 +314,35 @@ def test_the_checksum_is_the_documented_hash_of_every_array_in_memory_order():
         expected.update(f"{key}:{a.dtype.str}:{a.shape}:{fortran}".encode())
         expected.update(a.tobytes(order="A"))
     assert _checksum(b"tree", arrays) == expected.hexdigest()
+
+
+def test_a_deferred_merge_of_anything_but_maps_is_refused(maps):
+    arrays = encode_state(_deferred_joiner(maps, 6).save())
+    header = json.loads(bytes(arrays["header"]).decode())
+    body = {k: v for k, v in arrays.items() if k != "header"}
+    # a deferred merge whose inputs are a string and a map (checksum made valid: only the tree is wrong)
+    tree = header["tree"]
+    node = _first(tree, "__deferred__")
+    node["__deferred__"] = ["a string", node["__deferred__"][1]]
+    header["tree"] = tree
+    header["sha256"] = _checksum(json.dumps(tree, sort_keys=True, allow_nan=False).encode(), body)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    with pytest.raises(SnapshotError, match="a deferred merge of something other than maps"):
+        decode_state(arrays)
+
+
+def _first(node, key):
+    """The first dict in a JSON tree that holds ``key`` (depth first)."""
+    if isinstance(node, dict):
+        if key in node:
+            return node
+        children = node.values()
+    elif isinstance(node, list):
+        children = node
+    else:
+        return None
+    for child in children:
+        found = _first(child, key)
+        if found is not None:
+            return found
+    return None

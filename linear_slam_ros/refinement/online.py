@@ -206,7 +206,7 @@ def apply_gate(submap: LocalMap, decision: GateDecision | None, known: Callable[
         raise InvalidMapError(f"the gate split off all {submap.n_vars} variables of submap {submap.name!r}")
     if not drop:
         return submap
-    # imported here: the gate module pulls in scipy.stats (about 1 s of the refiner process's start-up)
+    # imported here: the refiner process does not need the gate's module otherwise
     from linear_slam_ros.joining.gate import marginalise_out
 
     return marginalise_out(submap, drop)

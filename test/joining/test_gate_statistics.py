@@ -160,3 +160,19 @@ def test_clean_pass_gates_nothing_on_consistent_data_and_trials_pick_loop_closur
         known = global_keys(clean.states[k])
         assert all(int(maps[k].keys[i]) in known for i in common)
         assert all(not (maps[k].kinds[i] != FEATURE and maps[k].ids[i] == maps[k].end_id) for i in common)
+
+
+def test_the_gates_chi2_and_f_functions_give_scipy_stats_numbers():
+    """The gate calls scipy.special (scipy.stats costs the node ~50 MB); the numbers are scipy.stats's, bit for bit."""
+    from linear_slam_ros.joining.gate import chi2_ppf, chi2_threshold
+
+    for dof in (1, 2, 3, 6, 9, 30, 300, 3000):
+        for p in (0.0, 0.5, 0.95, 0.99999999, 1.0):
+            assert chi2_ppf(p, dof) == float(scipy.stats.chi2.ppf(p, dof))
+        assert chi2_threshold(0.9999, dof) == float(scipy.stats.chi2.ppf(0.9999, dof))
+        for x in (-1e-16, 0.0, 1e-3, 0.5, 5.0, 50.0, 1722.0, 1e6, np.inf):
+            assert VarianceFactor(prior_dof=np.inf).logsf(x, dof) == float(scipy.stats.chi2.logsf(x, dof))
+            scale = VarianceFactor(nis=30.0, dof=100.0)  # s² and ν from data: the F distribution
+            assert scale.logsf(x, dof) == float(scipy.stats.f.logsf(x / (scale.value * dof), dof, scale.nu))
+        assert scale.threshold(0.9999, dof) == scale.value * dof * float(scipy.stats.f.ppf(0.9999, dof, scale.nu))
+    assert chi2_threshold(0.9999, 0) == float("inf")

@@ -481,6 +481,9 @@ class Joiner:
         if self.worker is not None:
             self.worker.clear()
         self.state = self._scheduled(saved.state)
+        if self.worker is not None:  # merges the saved state had not computed (snapshots keep them deferred)
+            for chain in self.state.chains:
+                self.worker.submit(self.state.strategy.pending(chain.joined))
         CACHE.anchors.clear()
         self.rejected = collections.Counter(dict(saved.rejected))
         self._pending = collections.defaultdict(dict)

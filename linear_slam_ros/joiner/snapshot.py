@@ -39,7 +39,6 @@ import logging
 import os
 import re
 import weakref
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -169,18 +168,19 @@ def _checksum(tree_json: bytes, arrays: dict[str, npt.NDArray[Any]]) -> str:
     return digest.hexdigest()
 
 
-def encode_state(state: Any, blobs: BlobStore | None = None) -> dict[str, npt.NDArray[Any]]:
+def encode_state(state: Any, blobs: BlobStore | None = None, encoder: _Encoder | None = None) -> dict[str, npt.NDArray[Any]]:
     """Return the arrays of a state file (``header`` included) for ``state``.
 
     Args:
         state: the value to write.
         blobs: where maps of at least :data:`BLOB_MIN_BYTES` go (written there now unless they
             already are); ``None`` keeps everything in the returned arrays.
+        encoder: the encoder to use (the caller reads its ``blob_names`` afterwards).
 
     Raises:
         SnapshotError: the state holds a value a state file cannot hold, or a blob cannot be written.
     """
-    enc = _Encoder(blobs)
+    enc = encoder if encoder is not None else _Encoder(blobs)
     tree = enc.encode(state)
     tree_json = json.dumps(tree, sort_keys=True, allow_nan=False).encode()
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION, "tree": tree, "sha256": _checksum(tree_json, enc.arrays),
@@ -223,7 +223,7 @@ def _sync_folder(folder: Path) -> None:
         os.close(dir_fd)
 
 
-def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> None:
+def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> frozenset[str]:
     """Write ``state`` to ``path`` atomically (temporary file, fsync, rename, fsync of the folder).
 
     Args:
@@ -232,11 +232,15 @@ def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> No
         blobs: with a store, its new blobs are written (and their folder synced) before the state
             file, so a state file on disk never names a blob the disk lacks.
 
+    Returns:
+        The names of the blobs the file names (empty without a store).
+
     Raises:
         SnapshotError: the state cannot be encoded, or the file cannot be written (names the path).
     """
     path = Path(path)
-    arrays = encode_state(state, blobs)  # stages the new blobs
+    enc = _Encoder(blobs)
+    arrays = encode_state(state, blobs, enc)  # stages the new blobs
     try:
         tmp = _stage(path, arrays)  # every byte is written before the first fsync: one journal commit for most
         if blobs is not None:
@@ -245,6 +249,7 @@ def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> No
         _sync_folder(path.parent)
     except OSError as exc:
         raise SnapshotError(f"cannot write state file {path}: {exc}") from None
+    return frozenset(enc.blob_names)
 
 
 class BlobStore:
@@ -357,7 +362,7 @@ def blob_names(path: Path) -> set[str]:
             header = json.loads(bytes(npz["header"]).decode())
     except FileNotFoundError:
         raise SnapshotError(f"state file {path} does not exist") from None
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, UnicodeDecodeError) as exc:
+    except Exception as exc:  # a trust boundary, as in _read_arrays
         raise SnapshotError(f"state file {path}: header cannot be read ({exc})") from None
     names = header.get("blobs", []) if isinstance(header, dict) else []
     return {n for n in names if isinstance(n, str)}
@@ -419,8 +424,18 @@ def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>", b
     Blobs the tree names are read from ``blobs`` (each checked the same way).
 
     Raises:
-        SnapshotError: no header, another format or version, a checksum mismatch, or a malformed tree.
+        SnapshotError: no header, another format or version, a checksum mismatch, or a malformed
+            tree (whatever a hostile file makes the decoding raise is reported as this).
     """
+    try:
+        return _decode_state(arrays, where, blobs)
+    except SnapshotError:
+        raise
+    except Exception as exc:  # a trust boundary: a crafted tree (NaN, a list for a version, deep nesting...)
+        raise SnapshotError(f"state file {where}: malformed state ({type(exc).__name__}: {exc})") from None
+
+
+def _decode_state(arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobStore | None) -> Any:
     if "header" not in arrays:
         raise SnapshotError(f"state file {where}: no header (not a linear_slam_ros state file)")
     try:
@@ -430,7 +445,7 @@ def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>", b
     if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
         raise SnapshotError(f"state file {where}: not a linear_slam_ros state file")
     version = header.get("version")
-    if version != FORMAT_VERSION and version not in MIGRATED:
+    if type(version) is not int or (version != FORMAT_VERSION and version not in MIGRATED):
         raise SnapshotError(
             f"state file {where}: format version {version!r}, this build reads version {FORMAT_VERSION}"
             f" (and {', '.join(str(v) for v in sorted(MIGRATED))})"
@@ -442,10 +457,7 @@ def decode_state(arrays: dict[str, npt.NDArray[Any]], where: str = "<memory>", b
     if version != FORMAT_VERSION and MIGRATED[version] is not None:
         logger.warning("state file %s: format version %s read by this build (version %d): %s", where, version,
                        FORMAT_VERSION, MIGRATED[version])
-    try:
-        return _Decoder(body, where, blobs).decode(header["tree"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SnapshotError(f"state file {where}: malformed state ({type(exc).__name__}: {exc})") from None
+    return _Decoder(body, where, blobs).decode(header["tree"])
 
 
 def _read_arrays(path: Path) -> dict[str, npt.NDArray[Any]]:
@@ -455,7 +467,7 @@ def _read_arrays(path: Path) -> dict[str, npt.NDArray[Any]]:
             return {k: npz[k] for k in npz.files}
     except FileNotFoundError:
         raise SnapshotError(f"state file {path} does not exist") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except Exception as exc:  # a trust boundary: whatever numpy or zipfile raise on a bad file (zlib.error...)
         raise SnapshotError(f"state file {path} cannot be read (truncated or not a state file: {exc})") from None
 
 

@@ -139,6 +139,9 @@ class JoinerNode(Node):
         self._version = 0  # bumped on every state change (join, rejection, reset, load); the publisher compares it
         self._published_version = 0  # nothing to publish before the first change
         self._lock = threading.Lock()  # guards (joiner.state, _version) snapshots
+        # one snapshot at a time, from taking the state to writing it (the timer's and ~/reset's), so a
+        # state taken before a reset can never be written after the reset's snapshot
+        self._snapshot_lock = threading.Lock()
         self._next_publish = 0.0
         # Freshness (README, "Scale"): arrival time of each submap, and how long after it the
         # first pose and the first global_map including it were published (s).
@@ -506,19 +509,20 @@ class JoinerNode(Node):
         """Write a snapshot of the current state (with ``state_dir``), outside the joining lock."""
         if self.store is None:
             return
-        with self._lock:
-            saved = self.joiner.save(self._journal_records)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        try:
-            self.store.journal.sync()  # the snapshot never includes records the disk lacks (appends go on)
-            self.store.write_snapshot(saved)
-        except LinearSlamError as exc:
-            self.get_logger().error(f"snapshot failed (the journal still holds every submap): {exc}")
-            return
-        self._persist_seconds["snapshot"] += time.perf_counter() - t0
-        self._cpu_seconds["snapshot"] += time.thread_time() - c0
-        self._snapshot_records = saved.journal_records
-        self._snapshot_joined = saved.state.n_joined
+        with self._snapshot_lock:
+            with self._lock:
+                saved = self.joiner.save(self._journal_records)
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                self.store.journal.sync()  # the snapshot never includes records the disk lacks (appends go on)
+                self.store.write_snapshot(saved)
+            except LinearSlamError as exc:
+                self.get_logger().error(f"snapshot failed (the journal still holds every submap): {exc}")
+                return
+            self._persist_seconds["snapshot"] += time.perf_counter() - t0
+            self._cpu_seconds["snapshot"] += time.thread_time() - c0
+            self._snapshot_records = saved.journal_records
+            self._snapshot_joined = saved.state.n_joined
 
     def _on_snapshot_timer(self) -> None:
         if self.store is None:

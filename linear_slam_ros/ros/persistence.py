@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import re
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -65,8 +66,9 @@ class StateStore:
 
     Maps of at least ``blob_min_bytes`` bytes are written as blobs, once each (see :class:`BlobStore`).
 
-    Not thread-safe by itself: the node appends from its joining thread and snapshots from its
-    output thread, each call on its own file.
+    The journal is appended to from the node's joining thread; snapshots may be written from
+    two threads (the timer's periodic ones, ``~/reset``'s), so :meth:`write_snapshot` takes a
+    lock: one snapshot, with its blobs and the deletion of unused ones, at a time.
     """
 
     def __init__(self, folder: Path, blob_min_bytes: int = BLOB_MIN_BYTES) -> None:
@@ -75,6 +77,7 @@ class StateStore:
         self.snapshot_dir = self.folder / "snapshots"
         self.blobs = BlobStore(self.snapshot_dir / "blobs", blob_min_bytes)
         self._journal: Journal | None = None
+        self._snapshot_lock = threading.Lock()
 
     def has_state(self) -> bool:
         """Return whether the folder holds a journal or a snapshot."""
@@ -156,20 +159,18 @@ class StateStore:
             SnapshotError: the snapshot cannot be written (names the file).
         """
         path = self.snapshot_dir / f"state_{saved.journal_records}.npz"
-        write_snapshot(path, saved, self.blobs)
-        snapshots = self.snapshots()
-        for _, old in snapshots[SNAPSHOTS_KEPT:]:
-            old.unlink(missing_ok=True)
-        keep: set[str] = set()
-        for _, kept in snapshots[:SNAPSHOTS_KEPT]:
+        with self._snapshot_lock:
+            keep = set(write_snapshot(path, saved, self.blobs))
+            snapshots = self.snapshots()
+            for _, old in snapshots[SNAPSHOTS_KEPT:]:
+                old.unlink(missing_ok=True)
             try:
-                keep |= blob_names(kept)
-            except SnapshotError as exc:  # an unreadable snapshot is never restored: its blobs may go
-                logger.warning("%s", exc)
-        try:
-            self.blobs.collect(keep)
-        except OSError as exc:
-            logger.warning("cannot delete the unused blobs of %s: %s", self.blobs.folder, exc)
+                for _, kept in snapshots[:SNAPSHOTS_KEPT]:
+                    if kept != path:
+                        keep |= blob_names(kept)
+                self.blobs.collect(keep)
+            except (SnapshotError, OSError) as exc:  # nothing is deleted unless every kept snapshot's blobs are known
+                logger.warning("unused blobs of %s left in place this time: %s", self.blobs.folder, exc)
         return path
 
     def close(self) -> None:

@@ -12,6 +12,7 @@ from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.joining.background import MergeWorker
+from linear_slam_ros.joining.divide_conquer import Deferred
 from linear_slam_ros.joining.islands import poses_of
 from support import global_map_of
 
@@ -113,6 +114,22 @@ def test_background_merges_give_the_same_map_and_survive_save_restore_and_reset(
     finally:
         worker.stop()
     assert not worker.alive
+
+
+def test_a_restored_states_deferred_merges_go_to_the_worker_at_once(maps, tmp_path):
+    lazy = Joiner(JoinMethod.ONLINE_DC, defer_above=0)  # no worker: the merges stay to compute
+    for seq, m in enumerate(maps[:6], start=1):
+        lazy.offer(m, seq)
+    write_snapshot(tmp_path / "state.npz", lazy.save())
+    restored = read_snapshot(tmp_path / "state.npz")
+    deferred = [e for e in restored.state.joined.stack if isinstance(e, Deferred)]
+    assert deferred and not any(e.done for e in deferred)
+    worker = MergeWorker()
+    try:
+        Joiner(JoinMethod.ONLINE_DC, defer_above=0, worker=worker).restore(restored)
+        assert worker.wait_idle(30.0) and all(e.done for e in deferred)  # no join needed to start them
+    finally:
+        worker.stop()
 
 
 class FakeClock:

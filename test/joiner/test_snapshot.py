@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import hashlib
 import io
@@ -346,3 +347,33 @@ def _first(node, key):
         if found is not None:
             return found
     return None
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (lambda h: h.update(version=[FORMAT_VERSION]), r"format version \[4\], this build reads version 4"),
+        (lambda h: h.update(version=True), r"format version True"),
+        (lambda h: _first(h["tree"], "fields").update(fields=[]), r"malformed state \(AttributeError"),
+        (lambda h: h.update(tree={"__tuple__": [float("nan")]}), r"malformed state \(ValueError"),
+    ],
+    ids=["list-version", "bool-version", "fields-list", "nan"],
+)
+def test_hostile_trees_are_refused_with_a_snapshot_error(change, expected):
+    """Trees a crafted file could hold, with a valid checksum where one can be made."""
+    arrays = encode_state(SavedJoiner(Joiner("sequential").state))
+    header = json.loads(bytes(arrays["header"]).decode())
+    change(header)
+    body = {k: v for k, v in arrays.items() if k != "header"}
+    with contextlib.suppress(ValueError):  # NaN: no checksum can be made (the tree fails before it is checked)
+        header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    with pytest.raises(SnapshotError, match=expected):
+        decode_state(arrays)
+
+
+def test_a_header_nested_too_deep_is_refused_with_a_snapshot_error():
+    depth = 100_000
+    text = '{"format": "linear_slam_ros.state", "version": 4, "tree": ' + '{"__tuple__": [' * depth + "null" + "]}" * depth + "}"
+    with pytest.raises(SnapshotError, match=r"malformed state \(RecursionError"):
+        decode_state({"header": np.frombuffer(text.encode(), dtype=np.uint8)})

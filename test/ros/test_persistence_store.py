@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner, global_result
-from linear_slam_ros.joiner.snapshot import blob_names
+from linear_slam_ros.joiner.snapshot import blob_names, read_snapshot
 from linear_slam_ros.ros.persistence import SNAPSHOTS_KEPT, StateStore
 from msg_adapters import decode_map, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize
@@ -140,3 +142,44 @@ def test_a_corrupt_blob_falls_back_to_an_older_point(messages, tmp_path):
     assert recovery.snapshot.name == "state_3.npz" and recovery.replayed == 4
     assert any(blob.name in p and "falling back to an older point" in p for p in recovery.problems)
     assert global_result(joiner.state).x.tobytes() == global_result(_reference(messages[:7]).state).x.tobytes()
+
+
+def test_blobs_stay_when_a_kept_snapshot_cannot_be_read(messages, tmp_path, caplog):
+    _session(tmp_path, messages[:7], snapshot_every=3, blob_min_bytes=0)  # state_6, state_3
+    store = StateStore(tmp_path, blob_min_bytes=0)
+    six = tmp_path / "snapshots" / "state_6.npz"
+    before = {p.name for p in store.blobs.folder.iterdir()}
+    six.write_bytes(b"garbage")
+    joiner = _reference(messages[:9])
+    names = blob_names(store.write_snapshot(joiner.save(9)))  # keeps state_9 and the unreadable state_6
+    after = {p.name for p in store.blobs.folder.iterdir()}
+    assert before <= after and {f"{n}.npz" for n in names} <= after  # nothing deleted this time
+    assert "unused blobs of" in caplog.text and "left in place this time" in caplog.text
+
+
+def test_two_snapshots_at_once_are_written_one_after_the_other(messages, tmp_path):
+    store = StateStore(tmp_path, blob_min_bytes=0)
+    first, second = _reference(messages[:6]), _reference(messages[:9])
+    entered, release = threading.Event(), threading.Event()
+    real_sync = store.blobs.sync
+
+    def slow_sync():
+        entered.set()
+        assert release.wait(30.0)
+        real_sync()
+
+    store.blobs.sync = slow_sync
+    a = threading.Thread(target=store.write_snapshot, args=(first.save(6),))
+    a.start()
+    assert entered.wait(30.0)
+    store.blobs.sync = real_sync
+    b = threading.Thread(target=store.write_snapshot, args=(second.save(9),))
+    b.start()
+    b.join(timeout=0.5)
+    assert b.is_alive() and not (tmp_path / "snapshots" / "state_9.npz").exists()  # waits for the first
+    release.set()
+    a.join(timeout=30.0)
+    b.join(timeout=30.0)
+    for n, joiner in ((6, first), (9, second)):
+        restored = read_snapshot(tmp_path / "snapshots" / f"state_{n}.npz")
+        assert global_result(restored.state).x.tobytes() == global_result(joiner.state).x.tobytes()

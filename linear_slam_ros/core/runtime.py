@@ -8,6 +8,10 @@ Two settings were measured to matter on the 2-core target machine (README, "Perf
 * glibc's dynamic mmap threshold. Each sequential step allocates a slightly larger matrix than
   the last; glibc then serves every one with a fresh ``mmap`` and pays page faults on all of
   it. A fixed, high threshold lets freed matrices be reused (VicPark200: 1.1 s -> 0.85 s).
+  The other strategies allocate and free large sparse arrays from several threads in the node,
+  where a high threshold keeps freed blocks in each thread's heap: a fixed 4 MiB threshold hands
+  them back (node peak RSS, two runs each: features2d-5000 546-588 MB against 831-867 MB,
+  manhattanOlson3500 259-261 against 279-306 MB; offline join times unchanged within noise).
 """
 
 from __future__ import annotations
@@ -21,27 +25,29 @@ from contextlib import AbstractContextManager, nullcontext
 logger = logging.getLogger(__name__)
 
 _M_MMAP_THRESHOLD = -3
-_MMAP_THRESHOLD_BYTES = 1 << 30
-_allocator_tuned = False
+MMAP_THRESHOLD_REUSE = 1 << 30
+"""Bytes: glibc's mmap threshold for the exact sequential strategies (freed dense matrices reused)."""
+MMAP_THRESHOLD_RETURN = 4 << 20
+"""Bytes: glibc's mmap threshold for the other strategies (large freed arrays handed back)."""
 
 
-def tune_allocator() -> bool:
-    """Fix glibc's mmap threshold at 1 GiB so large freed arrays are reused; return success.
+def tune_allocator(threshold_bytes: int = MMAP_THRESHOLD_REUSE) -> bool:
+    """Fix glibc's mmap threshold at ``threshold_bytes`` (no dynamic threshold); return success.
+
+    Args:
+        threshold_bytes: allocations of at least this many bytes are mapped, and unmapped when
+            freed; smaller ones come from the heap (a strategy's ``mmap_threshold``).
 
     A no-op returning ``False`` on platforms without glibc's ``mallopt``.
     """
-    global _allocator_tuned
-    if _allocator_tuned:
-        return True
     if not sys.platform.startswith("linux"):
         return False
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        ok = bool(libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_BYTES))
+        ok = bool(libc.mallopt(_M_MMAP_THRESHOLD, threshold_bytes))
     except (OSError, AttributeError):
         return False
-    _allocator_tuned = ok
-    logger.debug("mallopt(M_MMAP_THRESHOLD, %d) -> %s", _MMAP_THRESHOLD_BYTES, ok)
+    logger.debug("mallopt(M_MMAP_THRESHOLD, %d) -> %s", threshold_bytes, ok)
     return ok
 
 

@@ -68,7 +68,7 @@ def run_join(
     strategy = get_strategy(method, map_type)
     if not maps:
         raise InvalidMapError("no local maps to join")
-    tune_allocator()
+    tune_allocator(strategy.mmap_threshold)
     with blas_threads(strategy.blas_threads):
         start = time.perf_counter()
         result, steps = strategy.run(maps, progress)
@@ -113,7 +113,7 @@ def run_joiner(
         joiner.restore(initial)
     first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
     strategy = joiner.state.strategy
-    tune_allocator()
+    tune_allocator(strategy.mmap_threshold)
     with blas_threads(strategy.blas_threads):
         start = time.perf_counter()
         for i, m in enumerate(maps):

@@ -68,6 +68,8 @@ class JoinStrategy(Protocol[StateT, ResultT]):
             online strategies; a batch strategy's step only collects submaps).
         result_type: the type of the joined map (``LocalMap`` or ``FeatureMap``).
         blas_threads: BLAS threads measured best for this strategy (``None``: leave as is).
+        mmap_threshold: glibc's mmap threshold measured best for this strategy, bytes
+            (:func:`~linear_slam_ros.core.runtime.tune_allocator`).
         run_step: what one timed step of :meth:`run` is: ``"per submap"`` or ``"per pairwise join"``.
     """
 
@@ -76,6 +78,7 @@ class JoinStrategy(Protocol[StateT, ResultT]):
     online: ClassVar[bool]
     result_type: ClassVar[type]
     blas_threads: ClassVar[int | None]
+    mmap_threshold: ClassVar[int]
     run_step: ClassVar[str]
 
     def empty(self) -> StateT:

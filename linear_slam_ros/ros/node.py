@@ -116,8 +116,9 @@ class JoinerNode(Node):
         # robots: each robot's slot keeps its pose ids apart (README, "Islands and several robots")
         self._slots = robot_slots(config.robots) if config.robots else {"": 0}
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        tune_allocator()
-        set_blas_threads(get_strategy(config.mode, config.map_type).blas_threads)
+        strategy = get_strategy(config.mode, config.map_type)
+        tune_allocator(strategy.mmap_threshold)
+        set_blas_threads(strategy.blas_threads)
         self._log_handler = _RosLogHandler(self)
         core_logger = logging.getLogger("linear_slam_ros")
         core_logger.addHandler(self._log_handler)

@@ -11,6 +11,7 @@ import numpy.typing as npt
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.runtime import MMAP_THRESHOLD_RETURN
 from linear_slam_ros.joiner.strategy import BatchStrategy, FoldStrategy, JoinMethod, MapType, PoseEstimate, Progress
 from linear_slam_ros.joining.chain import PoseChain
 from linear_slam_ros.joining.divide_conquer import (
@@ -33,6 +34,7 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
     online: ClassVar[bool] = True
     result_type: ClassVar[type] = LocalMap
     blas_threads: ClassVar[int | None] = None
+    mmap_threshold: ClassVar[int] = MMAP_THRESHOLD_RETURN
     finish_in_last_step: ClassVar[bool] = True
 
     def empty(self) -> OnlineDCState:
@@ -87,6 +89,7 @@ class BatchDC(BatchStrategy[LocalMap]):
     map_type: ClassVar[MapType] = MapType.AS_IS
     result_type: ClassVar[type] = LocalMap
     blas_threads: ClassVar[int | None] = None
+    mmap_threshold: ClassVar[int] = MMAP_THRESHOLD_RETURN
 
     def express(self, result: LocalMap, pose_id: int) -> LocalMap:
         """Return the map in the frame of pose ``pose_id``."""

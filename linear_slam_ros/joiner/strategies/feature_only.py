@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from typing import ClassVar
 
 from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.runtime import MMAP_THRESHOLD_RETURN
 from linear_slam_ros.feature_only.conversion import to_feature_only
 from linear_slam_ros.feature_only.joining import join_features_dc, join_features_sequential
 from linear_slam_ros.feature_only.maps import FeatureMap
@@ -39,6 +40,7 @@ class _FeatureStreaming(FoldStrategy[FeatureJoinState, FeatureMap]):
     map_type: ClassVar[MapType] = MapType.FEATURE_ONLY
     result_type: ClassVar[type] = FeatureMap
     blas_threads: ClassVar[int | None] = None
+    mmap_threshold: ClassVar[int] = MMAP_THRESHOLD_RETURN
     divide_and_conquer: ClassVar[bool] = False
 
     def empty(self) -> FeatureJoinState:
@@ -85,6 +87,7 @@ class FeatureBatchDC(BatchStrategy[FeatureMap]):
     map_type: ClassVar[MapType] = MapType.FEATURE_ONLY
     result_type: ClassVar[type] = FeatureMap
     blas_threads: ClassVar[int | None] = None
+    mmap_threshold: ClassVar[int] = MMAP_THRESHOLD_RETURN
 
     def express(self, result: FeatureMap, pose_id: int) -> FeatureMap:
         """Return ``result`` unchanged: a feature-only map has no pose frame."""

@@ -10,6 +10,7 @@ import numpy.typing as npt
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.runtime import MMAP_THRESHOLD_REUSE
 from linear_slam_ros.joiner.strategy import FoldStrategy, JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.chain import chain_end_pose
 from linear_slam_ros.joining.gate import Marginal
@@ -34,6 +35,7 @@ class Sequential(FoldStrategy[SequentialState, LocalMap]):
     online: ClassVar[bool] = True
     result_type: ClassVar[type] = LocalMap
     blas_threads: ClassVar[int | None] = 1
+    mmap_threshold: ClassVar[int] = MMAP_THRESHOLD_REUSE
     """Rank-c updates of one dense matrix: one BLAS thread is twice as fast on two cores."""
 
     def empty(self) -> SequentialState:

@@ -20,7 +20,8 @@ Parameters (all read-only, declared with descriptions): ``world`` (``park`` | ``
 per second), ``n_maps`` (stop after this many; 0: for ever), ``map_frame`` (``frame_id`` of
 ``~/true_pose``: the frame of pose 0, like the joiner's ``map_frame``). The node waits for a
 subscriber on ``local_map`` before its first map; with ``n_maps`` set it exits with code 0 once
-every map has been acknowledged, and with code 2 on an invalid parameter.
+every map has been acknowledged (and the last ``~/true_pose`` by whoever subscribed to it, given
+:data:`TRUTH_LINGER_S` to match), and with code 2 on an invalid parameter.
 
 What a front-end must get right (the rest is your own business):
 
@@ -45,6 +46,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+import time
 from typing import Any
 
 import numpy as np
@@ -186,6 +188,10 @@ class SimFrontend(Node):
             self.finished.set_result(self.seq)
 
 
+TRUTH_LINGER_S = 1.0
+"""s: with ``n_maps`` set, how long the node waits, after its last map, for a ``~/true_pose`` subscriber to match."""
+
+
 def main(args: list[str] | None = None) -> None:
     """Run the node until ``n_maps`` maps are acknowledged (or for ever); Ctrl-C stops it cleanly."""
     rclpy.init(args=args)
@@ -199,6 +205,12 @@ def main(args: list[str] | None = None) -> None:
         rclpy.spin_until_future_complete(node, node.finished)
         # Reliable delivery ends with the subscriber's acknowledgement: exiting earlier can lose the last maps.
         node.local_map_pub.wait_for_all_acked(Duration(seconds=30))
+        # The latched truth ends with the process: a subscriber still being discovered gets TRUTH_LINGER_S to
+        # match, and whoever matched has acknowledged it before the exit.
+        deadline = time.monotonic() + TRUTH_LINGER_S
+        while node.true_pose_pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        node.true_pose_pub.wait_for_all_acked(Duration(seconds=5))
         node.get_logger().info(f"published {node.seq} local maps")
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -35,8 +35,8 @@ def node(rclpy_session):
 def start_joiner() -> Callable[..., JoinerProcess]:
     started: list[JoinerProcess] = []
 
-    def start(**params: object) -> JoinerProcess:
-        jp = JoinerProcess(params, f"t{uuid.uuid4().hex[:8]}")
+    def start(namespace: str | None = None, **params: object) -> JoinerProcess:
+        jp = JoinerProcess(params, namespace or f"t{uuid.uuid4().hex[:8]}")
         started.append(jp)
         return jp
 

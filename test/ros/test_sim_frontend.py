@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import uuid
 from collections.abc import Callable
 
 import numpy as np
@@ -103,13 +104,17 @@ def all_joined(message: object) -> bool:
 
 def test_joiner_joins_the_live_stream(node: Node, start_joiner: Callable[..., JoinerProcess]) -> None:
     """20 maps at 50 Hz: all joined, equal to the offline join of the seeded maps, and close to the truth."""
-    joiner = start_joiner(publish_rate=20.0, output_frame="first_pose")
     simulation = Simulation("park", SEED, STEPS)
     end = simulation.true_pose(STEPS * N_MAPS)  # the true end pose of the last map
     true_poses: list[PoseStamped] = []
-    node.create_subscription(PoseStamped, joiner.topic("sim_frontend/true_pose"), true_poses.append, latched_qos())
-    sim = sim_frontend(joiner.namespace, f"seed:={SEED}", f"steps_per_map:={STEPS}", f"n_maps:={N_MAPS}", "rate:=50.0")
+    namespace = f"t{uuid.uuid4().hex[:8]}"
+    truth_sub = node.create_subscription(PoseStamped, f"/{namespace}/sim_frontend/true_pose", true_poses.append, latched_qos())
+    sim = sim_frontend(namespace, f"seed:={SEED}", f"steps_per_map:={STEPS}", f"n_maps:={N_MAPS}", "rate:=50.0")
     try:
+        # The front-end waits for the joiner before its first map; this node (a participant of long
+        # standing: DDS may take a few seconds to discover a newcomer) finds its ground truth first.
+        assert spin_until(node, lambda: truth_sub.get_publisher_count() > 0, 30.0), "~/true_pose not discovered in 30 s"
+        joiner = start_joiner(namespace, publish_rate=20.0, output_frame="first_pose")
         final, _ = wait_for_global_map(node, joiner.topic("global_map"), all_joined, 60.0, joiner)  # ~8 s on an idle machine
         assert sim.wait(20.0) == 0, output(sim)  # exits by itself once every map is acknowledged
         spin_until(node, lambda: bool(true_poses) and true_poses[-1].pose.position.x == end[0], 5.0)

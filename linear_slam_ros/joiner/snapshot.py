@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
+from linear_slam_ros.core.durable import fsync_path
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.feature_only.maps import FeatureMap
@@ -207,20 +208,8 @@ def _commit(tmp: Path, path: Path) -> None:
     Raises:
         OSError: the file cannot be synced or renamed.
     """
-    fd = os.open(tmp, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    fsync_path(tmp)
     os.replace(tmp, path)
-
-
-def _sync_folder(folder: Path) -> None:
-    dir_fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 
 def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> frozenset[str]:
@@ -246,7 +235,7 @@ def write_snapshot(path: Path, state: Any, blobs: BlobStore | None = None) -> fr
         if blobs is not None:
             blobs.sync()
         _commit(tmp, path)
-        _sync_folder(path.parent)
+        fsync_path(path.parent)
     except OSError as exc:
         raise SnapshotError(f"cannot write state file {path}: {exc}") from None
     return frozenset(enc.blob_names)
@@ -307,7 +296,7 @@ class BlobStore:
             if self._staged:
                 for name, tmp in self._staged.items():
                     _commit(tmp, self.path(name))
-                _sync_folder(self.folder)
+                fsync_path(self.folder)
         except OSError:
             self._written.clear()
             raise

@@ -99,6 +99,7 @@ from rosbags.rosbag2.metadata import dump_qos_v9
 from ruamel.yaml import YAML
 from ruamel.yaml.error import YAMLError
 
+from linear_slam_ros.core.durable import fsync_path
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.ros.bagio import qos
 from msg_adapters.bags import MSGTYPE, TYPESTORE
@@ -578,15 +579,6 @@ def _bag_metadata(files: Sequence[_FileStats]) -> dict[str, Any]:
     }
 
 
-def _fsync_dir(folder: Path) -> None:
-    """Make a folder's entries (a new or renamed file) durable."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def _lock(folder: Path) -> BinaryIO:
     """Take the journal's writer lock (flock on ``.lock``); return the open file: closing it releases the lock.
 
@@ -615,7 +607,7 @@ def _write_metadata(folder: Path, files: Sequence[_FileStats], fsync: bool) -> N
             os.fsync(f.fileno())
     os.replace(tmp, folder / METADATA_NAME)
     if fsync:
-        _fsync_dir(folder)
+        fsync_path(folder)
 
 
 class _MappedFile:
@@ -857,7 +849,7 @@ def _seal(folder: Path, scan: _Scan) -> _FileStats:
         raise
     writer.close()
     os.replace(tmp, path)
-    _fsync_dir(folder)
+    fsync_path(folder)
     times = [m[2] for m in scan.messages]
     return _FileStats(scan.name, len(times), min(times, default=None), max(times, default=None), writer.topics())
 
@@ -942,7 +934,7 @@ class Journal:
                 _inventory(folder)  # refuse a folder that is not a journal before writing to it
             else:
                 folder.mkdir(parents=True)
-                _fsync_dir(folder.parent)
+                fsync_path(folder.parent)
             lock = _lock(folder)
         except OSError as exc:
             raise JournalError(f"journal {folder}: cannot create or lock the folder: {exc}") from None
@@ -968,7 +960,7 @@ class Journal:
                 raise JournalError(f"journal {folder}: cannot open {name} for appending: {exc}") from None
             try:
                 storage.fsync()
-                _fsync_dir(folder)
+                fsync_path(folder)
                 journal = cls(
                     folder, storage, earlier, contents.count, fsync_period_s, fsync_every, clock, lock, sync_in_append
                 )

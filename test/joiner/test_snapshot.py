@@ -209,12 +209,17 @@ def test_values_a_state_file_cannot_hold_are_refused():
         encode_state(Joiner("sequential"))
 
 
-def _deferred_joiner(maps, n):
-    """An online-D&C joiner whose every merge is deferred and, with no worker, left to compute."""
-    j = Joiner("online-dc", defer_above=0)
+def _online_dc(maps, n, **options):
+    """An online-D&C joiner that has joined ``maps[:n]``."""
+    j = Joiner("online-dc", **options)
     for seq, m in enumerate(maps[:n], start=1):
         j.offer(m, seq)
     return j
+
+
+def _deferred_joiner(maps, n):
+    """An online-D&C joiner whose every merge is deferred and, with no worker, left to compute."""
+    return _online_dc(maps, n, defer_above=0)
 
 
 def test_a_merge_not_computed_yet_is_written_as_its_inputs_without_computing_or_waiting(maps, tmp_path):
@@ -236,9 +241,7 @@ def test_a_merge_not_computed_yet_is_written_as_its_inputs_without_computing_or_
 
 
 def test_large_maps_are_written_once_as_blobs_named_by_checksum(maps, tmp_path):
-    j = Joiner("online-dc")
-    for seq, m in enumerate(maps[:8], start=1):
-        j.offer(m, seq)
+    j = _online_dc(maps, 8)
     blobs = BlobStore(tmp_path / "blobs", min_bytes=0)
     write_snapshot(tmp_path / "a.npz", j.save(), blobs)
     first = sorted(p.name for p in blobs.folder.iterdir())
@@ -262,9 +265,7 @@ def test_large_maps_are_written_once_as_blobs_named_by_checksum(maps, tmp_path):
 
 
 def test_blob_corruptions_are_named_and_never_loaded(maps, tmp_path):
-    j = Joiner("online-dc")
-    for seq, m in enumerate(maps[:4], start=1):
-        j.offer(m, seq)
+    j = _online_dc(maps, 4)
     blobs = BlobStore(tmp_path / "blobs", min_bytes=0)
     write_snapshot(tmp_path / "state.npz", j.save(), blobs)
     (name,) = blob_names(tmp_path / "state.npz")

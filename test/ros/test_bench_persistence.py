@@ -40,3 +40,4 @@ def test_the_verdicts_follow_the_cost_and_say_the_wall_figure_too():
     text = markdown([missed, {"dataset": "manhattanOlson3500", "skipped": "not found"}], "cmd")
     assert "0.090, 0.110 (target <= 0.10): NOT met" in text and "restore 0.20, 2.50 s (target <= 2.0 s): NOT met" in text
     assert "- manhattanOlson3500: skipped (not found)" in text
+    assert "a cross-check, not the target's figure: the join seconds without state alone range 5.00-5.00 s (±0%" in text

@@ -10,8 +10,9 @@ Two settings were measured to matter on the 2-core target machine (README, "Perf
   it. A fixed, high threshold lets freed matrices be reused (VicPark200: 1.1 s -> 0.85 s).
   The other strategies allocate and free large sparse arrays from several threads in the node,
   where a high threshold keeps freed blocks in each thread's heap: a fixed 4 MiB threshold hands
-  them back (node peak RSS, two runs each: features2d-5000 546-588 MB against 831-867 MB,
-  manhattanOlson3500 259-261 against 279-306 MB; offline join times unchanged within noise).
+  them back (node peak RSS, two runs each: features2d-5000 513-515 MB against 731-859 MB,
+  manhattanOlson3500 243-255 against 250-275 MB; the node's join seconds on features2d-5000
+  4.38-5.59 against 4.02-4.16, perhaps slower, within this machine's noise; offline join times unchanged).
 """
 
 from __future__ import annotations

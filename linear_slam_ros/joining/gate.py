@@ -601,7 +601,7 @@ def chi2_threshold(probability: float, dof: int) -> float:
 
 
 # scipy.stats's χ² and F functions, through the scipy.special functions they call (the same
-# numbers): importing scipy.stats costs the node about 50 MB of memory and a second of start-up.
+# numbers): importing scipy.stats cost the node about 30 MB of memory (importing the node module: 137 -> 106 MB).
 
 
 def chi2_ppf(probability: float, dof: float) -> float:

@@ -163,7 +163,7 @@ def test_clean_pass_gates_nothing_on_consistent_data_and_trials_pick_loop_closur
 
 
 def test_the_gates_chi2_and_f_functions_give_scipy_stats_numbers():
-    """The gate calls scipy.special (scipy.stats costs the node ~50 MB); the numbers are scipy.stats's, bit for bit."""
+    """The gate calls scipy.special (scipy.stats costs the node ~30 MB); the numbers are scipy.stats's, bit for bit."""
     from linear_slam_ros.joining.gate import chi2_ppf, chi2_threshold
 
     for dof in (1, 2, 3, 6, 9, 30, 300, 3000):

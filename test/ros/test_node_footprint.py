@@ -1,4 +1,4 @@
-"""What the node loads at start-up: scipy.stats stays out (about 50 MB of memory and a second of start-up)."""
+"""What the node loads at start-up: scipy.stats stays out (about 30 MB of memory)."""
 
 from __future__ import annotations
 

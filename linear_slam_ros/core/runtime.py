@@ -32,7 +32,7 @@ MMAP_THRESHOLD_RETURN = 4 << 20
 """Bytes: glibc's mmap threshold for the other strategies (large freed arrays handed back)."""
 
 
-def tune_allocator(threshold_bytes: int = MMAP_THRESHOLD_REUSE) -> bool:
+def tune_allocator(threshold_bytes: int) -> bool:
     """Fix glibc's mmap threshold at ``threshold_bytes`` (no dynamic threshold); return success.
 
     Args:
@@ -78,8 +78,8 @@ def set_blas_threads(n_threads: int | None) -> None:
 def release_memory() -> bool:
     """Hand freed heap memory back to the system (glibc ``malloc_trim``); return whether it ran.
 
-    With the fixed mmap threshold of :func:`tune_allocator`, large freed arrays stay in the heap
-    for reuse; after a reset nothing will reuse them soon, so the node trims the heap.
+    Below the mmap threshold of :func:`tune_allocator` (1 GiB for sequential joining), freed arrays
+    stay in the heap for reuse; after a reset nothing will reuse them soon, so the node trims the heap.
     """
     if not sys.platform.startswith("linux"):
         return False

@@ -1,7 +1,7 @@
 """ament_python set-up of linear_slam_ros: console scripts land in lib/linear_slam_ros (setup.cfg).
 
 data_files install what ``ros2 launch`` and RViz find through the package's share directory:
-share/linear_slam_ros/{package.xml, config/*.yaml, launch/*.launch.py, rviz/*.rviz}.
+share/linear_slam_ros/{package.xml, config/*.yaml, config/*.xml, launch/*.launch.py, rviz/*.rviz}.
 Console scripts are resolved when they run, not when they are installed: a script whose module
 does not exist yet still installs (and fails only when started).
 """
@@ -19,7 +19,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
-        (f"share/{PACKAGE}/config", glob("config/*.yaml")),
+        (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/rviz", glob("rviz/*.rviz")),
     ],

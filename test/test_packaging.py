@@ -247,6 +247,8 @@ def test_launch_nodes_name_installed_executables_and_files() -> None:
     exe = _installed(LIB / "joiner")
     assert exe.is_file() and exe.stat().st_mode & 0o111
     assert (SHARE / "config" / "joiner.yaml").is_file()
+    # the FastDDS profile the joiner loads from its share directory (linear_slam_ros.ros.qos.inbound_dds_profile)
+    assert (SHARE / "config" / "fastdds_inbound.xml").read_bytes() == (REPO / "config" / "fastdds_inbound.xml").read_bytes()
     assert (SHARE / "rviz" / RVIZ_FILE.name).read_bytes() == RVIZ_FILE.read_bytes()
     assert (SHARE / "launch" / LAUNCH_FILE.name).read_bytes() == LAUNCH_FILE.read_bytes()
 

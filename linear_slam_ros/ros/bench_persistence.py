@@ -22,7 +22,7 @@ default ``sequential`` mode is exact but O(n^2) per submap: it does not finish t
 Targets: journal + snapshots <= 10 % of the join time (per dataset), restore of VicPark6898 <= 2 s.
 What journal + snapshots cost the joins (``cost_ratio``, the target's figure): the journal's
 wall time, which is spent on the joining thread before each join, plus the snapshots' thread CPU
-time (they run on the node's timer thread; while they wait for fsync or for the interpreter lock
+time (they run on the node's output thread; while they wait for fsync or for the interpreter lock
 they take nothing from the joins), over the join seconds. Reported beside it: the same in wall
 time only (``ratio``: the snapshots' fsync waits counted too), in thread CPU time only
 (``cpu_ratio``), and the joining thread's seconds with persistence over without (``ab_ratio``,
@@ -401,12 +401,12 @@ def markdown(results: list[dict[str, Any]], command: str) -> str:
         "first submap published to the global map with every submap received; restore s: `restore_seconds_total` and "
         "the `resumed from ... in X s` log line; restart to map: process start to the restored global map received. "
         "Cost (the target's figure): the journal's wall time (spent on the joining thread before each join) plus the "
-        "snapshots' thread CPU time (they run on the timer thread beside the joins; their fsync waits and interpreter-"
+        "snapshots' thread CPU time (they run on the output thread beside the joins; their fsync waits and interpreter-"
         "lock waits take nothing from the joins), over the join seconds; beside it the same in wall time only and in "
         "CPU time only. "
         "CPU s: thread CPU time of the journal writes + snapshots / of the joins (wall time around a journal write also "
         "counts the waits for the interpreter lock while the node's other threads run, and the snapshots run on the "
-        "timer thread beside the joins, their disk waits included). Last column: the joining thread's seconds per "
+        "output thread beside the joins, their disk waits included). Last column: the joining thread's seconds per "
         "stream with persistence (joins + journal writes, so also whatever the snapshots took from the joins) over "
         "the joins' seconds without, in the run beside it.",
         "",

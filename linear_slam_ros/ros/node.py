@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import os
 import sys
 import threading
 import time
@@ -23,8 +24,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
@@ -48,9 +48,10 @@ from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
 from linear_slam_ros.refinement.online import GateDecision, LinearEstimate, Submission
 from linear_slam_ros.refinement.worker import RefineWorker, SinkSpec
 from linear_slam_ros.ros.journal import JournalError
+from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
 from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.pose_output import PoseTracker
-from linear_slam_ros.ros.qos import inbound_qos, latched_qos
+from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbound_qos, latched_qos
 from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_empty_global, encode_global
@@ -64,6 +65,8 @@ products) leave the interpreter lock to the arrivals, so this bounds the second 
 taken from the background merges."""
 PRUNE_EVERY = 1024
 """Offers between two prunings of the per-sequence-number records (a scan of each: amortised)."""
+SNAPSHOT_CHECK_PERIOD = 0.25
+"""s between two checks whether a snapshot is due (``snapshot_period`` submaps joined since the last)."""
 SWITCH_INTERVAL = 0.0005
 """s, the interpreter's thread switch interval: an arrival waits at most this long for the
 background merge thread to hand over the interpreter lock (Python's default is 5 ms)."""
@@ -179,13 +182,11 @@ class JoinerNode(Node):
 
         depth = config.queue_depth
         inbound, latched = inbound_qos(depth), latched_qos()
-        joining_group = MutuallyExclusiveCallbackGroup()
-        output_group = MutuallyExclusiveCallbackGroup()
         for robot in self._slots:  # with robots: each robot's topics in its namespace
             for base in ("local_map", "pose_graph"):
                 topic = f"{robot}/{base}" if robot else base
                 self.create_subscription(
-                    Float64MultiArray, topic, self._receiver(topic, robot), inbound, callback_group=joining_group, raw=True,
+                    Float64MultiArray, topic, self._receiver(topic, robot), inbound, raw=True,
                 )
         self.pub_global = self.create_publisher(Float64MultiArray, "global_map", latched)
         self.pub_path = self.create_publisher(PathMsg, "path", latched)
@@ -201,14 +202,19 @@ class JoinerNode(Node):
             log = self.get_logger().info if self._tf_send is not None else self.get_logger().warning
             log(f"publish_tf: {how}" if self._tf_send is not None else f"publish_tf is set but no TF is published: {how}")
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=joining_group)
-        self.create_timer(0.25, self._on_expire_timer, callback_group=joining_group)
-        self.create_service(Trigger, "~/save_map", self._on_save_map, callback_group=output_group)
-        self.create_service(Trigger, "~/load_map", self._on_load_map, callback_group=output_group)
+        # The executor (single-threaded: main) takes the arrivals and the services; the outputs, the
+        # snapshots and the summary run on their own thread (README, "Scale").
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_timer(0.25, self._on_expire_timer)
+        self.create_service(Trigger, "~/save_map", self._on_save_map)
+        self.create_service(Trigger, "~/load_map", self._on_load_map)
+        self._output_lock = threading.Lock()  # one publication at a time (the output thread's, ~/load_map's)
+        tasks = [PeriodicTask("publish", lambda: 1.0 / self.config.publish_rate, self._on_publish_timer)]
         if self.store is not None:
-            self.create_timer(0.25, self._on_snapshot_timer, callback_group=output_group)
-        self._timer = self.create_timer(1.0 / config.publish_rate, self._on_publish_timer, callback_group=output_group)
-        self.create_timer(config.summary_period, self._on_summary_timer, callback_group=output_group)
+            tasks.append(PeriodicTask("snapshot", lambda: SNAPSHOT_CHECK_PERIOD, self._on_snapshot_timer))
+        first_summary = time.monotonic() + config.summary_period  # an idle start says nothing at once
+        tasks.append(PeriodicTask("summary", lambda: self.config.summary_period, self._on_summary_timer, first_summary))
+        self._outputs = PeriodicThread(tasks, self._on_output_error, name="linear_slam_outputs")
         self.get_logger().info(
             f"joiner ready: mode={config.mode.value}, map_type={config.map_type.value}, "
             f"output_frame={config.output_frame.value}, map_frame={config.map_frame}, queue_depth={depth or 'keep all'}"
@@ -222,9 +228,7 @@ class JoinerNode(Node):
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.config = changed
-        for p in params:
-            if p.name == "publish_rate":
-                self._timer.timer_period_ns = int(1e9 / float(p.value))
+        for p in params:  # publish_rate and summary_period: read by the output thread at each period
             if p.name in ("reorder_window", "reorder_timeout", "reorder_max_bytes"):
                 setattr(self.joiner, p.name, getattr(changed, p.name))
         return SetParametersResult(successful=True)
@@ -411,6 +415,7 @@ class JoinerNode(Node):
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
+        self._outputs.wake()
         response.success, response.message = True, "global map cleared"
         self.get_logger().info("global map reset")
         return response
@@ -535,7 +540,10 @@ class JoinerNode(Node):
             self._snapshot()
 
     def destroy_node(self) -> None:
-        """Snapshot and close the journal (clean shutdown), stop the merge thread, then destroy the node."""
+        """Stop the output thread, snapshot and close the journal (clean shutdown), stop the merge thread, then
+        destroy the node."""
+        if not self._outputs.stop():
+            self.get_logger().warning("the output thread did not stop within 30 s")
         if self.store is not None:
             self._snapshot()
             self.store.close()
@@ -640,7 +648,15 @@ class JoinerNode(Node):
         except OSError as exc:
             self.get_logger().error(f"cannot write timing_file {path}: {exc}")
 
+    def _on_output_error(self, task: str, exc: BaseException) -> None:
+        self.get_logger().error(f"{task} failed: {type(exc).__name__}: {exc}")
+
     def _on_publish_timer(self) -> None:
+        with self._output_lock:
+            self._publish_due()
+
+    def _publish_due(self) -> None:
+        """Publish the global map and its views if the state changed and the duty cycle allows."""
         now = time.monotonic()
         if now < self._next_publish:
             return
@@ -787,6 +803,18 @@ def _robot_seq(key: Any) -> tuple[str, int]:
     return key if isinstance(key, tuple) else ("", key)
 
 
+def _share_directory() -> Path | None:
+    """The package's installed share directory (``None`` when it runs from the source tree)."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    except ImportError:  # pragma: no cover - ament_index comes with rclpy
+        return None
+    try:
+        return Path(get_package_share_directory("linear_slam_ros"))
+    except PackageNotFoundError:
+        return None
+
+
 def status_header(node: Node) -> Any:
     """Return a header stamped with the node's clock."""
     from std_msgs.msg import Header
@@ -796,11 +824,14 @@ def status_header(node: Node) -> Any:
 
 def main(args: list[str] | None = None) -> None:
     """Start the joiner; Ctrl-C stops it cleanly; an invalid parameter exits with code 2."""
+    profile = inbound_dds_profile(os.environ, _share_directory())
+    if profile is not None:  # read by FastDDS when rclpy creates the participant
+        os.environ[PROFILE_VARIABLES[0]] = str(profile)
     rclpy.init(args=args)
     node = None
     try:
         node = JoinerNode()
-        executor = MultiThreadedExecutor(num_threads=2)
+        executor = SingleThreadedExecutor()  # outputs have their own thread (PeriodicThread)
         executor.add_node(node)
         executor.spin()
     except (ConfigError, SnapshotError, JournalError) as exc:

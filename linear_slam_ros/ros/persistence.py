@@ -67,7 +67,7 @@ class StateStore:
     Maps of at least ``blob_min_bytes`` bytes are written as blobs, once each (see :class:`BlobStore`).
 
     The journal is appended to from the node's joining thread; snapshots may be written from
-    two threads (the timer's periodic ones, ``~/reset``'s), so :meth:`write_snapshot` takes a
+    two threads (the output thread's periodic ones, ``~/reset``'s), so :meth:`write_snapshot` takes a
     lock: one snapshot, with its blobs and the deletion of unused ones, at a time.
     """
 
@@ -136,7 +136,7 @@ class StateStore:
 
     def open_journal(self) -> Journal:
         """Open the journal for appending (a new storage file of the same bag)."""
-        if self._journal is None:  # fsyncs run in the node's timer (maybe_sync), never inside an append
+        if self._journal is None:  # fsyncs run on the node's output thread (maybe_sync), never inside an append
             self._journal = Journal.open(self.journal_dir, sync_in_append=False)
         return self._journal
 

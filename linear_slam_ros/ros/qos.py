@@ -10,12 +10,17 @@ caller that adjusts its copy changes nobody else's.
   publishes them (the bag player, the tests).
 - :func:`bag_topic_qos`: a played bag topic, latched or not.
 - :func:`recorder_qos`: the bag recorder's subscriptions.
+- :func:`inbound_dds_profile`: the FastDDS profile (``config/fastdds_inbound.xml``) that lets the
+  joiner's readers queue a full-speed stream instead of refusing samples.
 
 The bag metadata's form of the first two (rosbags' ``Qos``, written without rclpy) is
 :func:`linear_slam_ros.ros.bagio.qos`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -69,3 +74,31 @@ def recorder_qos() -> QoSProfile:
     profile = latched_qos()
     profile.history = HistoryPolicy.KEEP_ALL
     return profile
+
+
+INBOUND_PROFILE = "fastdds_inbound.xml"
+"""The joiner's FastDDS profile, in the package's ``config`` folder (installed to its share directory)."""
+PROFILE_VARIABLES = ("FASTRTPS_DEFAULT_PROFILES_FILE", "FASTDDS_DEFAULT_PROFILES_FILE")
+"""Environment variables through which FastDDS reads an XML profile file (the first is Jazzy's)."""
+
+
+def inbound_dds_profile(environ: Mapping[str, str], share: Path | None) -> Path | None:
+    """Return the FastDDS profile file the joiner should load, or ``None`` to leave DDS as configured.
+
+    Keep-all readers under FastDDS's default resource limits refuse samples beyond 400 queued,
+    and the writer's repairs of every refused sample then take a core of CPU (README, "Scale").
+    The profile raises the readers' limits (``config/fastdds_inbound.xml``). Nothing is chosen
+    when the middleware is not FastDDS or when the user names a profile file of their own.
+
+    Args:
+        environ: the process environment.
+        share: the package's share directory (``None``: not installed; the source tree's
+            ``config`` folder is used).
+    """
+    if environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp") not in ("", "rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp"):
+        return None
+    if any(environ.get(name) for name in PROFILE_VARIABLES):
+        return None
+    folder = share / "config" if share is not None else Path(__file__).resolve().parents[2] / "config"
+    path = folder / INBOUND_PROFILE
+    return path if path.is_file() else None

@@ -1,0 +1,100 @@
+"""The output thread of the joiner (linear_slam_ros.ros.periodic): periods, wake, errors, stop."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
+
+
+def _wait(condition, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(0.005)
+    return condition()
+
+
+def test_jobs_run_at_once_then_at_their_period() -> None:
+    times: list[float] = []
+    thread = PeriodicThread([PeriodicTask("tick", lambda: 0.05, lambda: times.append(time.monotonic()))], print, "t")
+    try:
+        assert _wait(lambda: len(times) >= 5)
+    finally:
+        assert thread.stop()
+    gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+    assert min(gaps) >= 0.045  # never early
+    assert not thread.alive
+
+
+def test_the_period_is_read_before_each_wait() -> None:
+    period = [10.0]
+    runs: list[float] = []
+    thread = PeriodicThread([PeriodicTask("tick", lambda: period[0], lambda: runs.append(time.monotonic()))], print, "t")
+    try:
+        assert _wait(lambda: len(runs) == 1)
+        period[0] = 0.02
+        time.sleep(0.1)
+        assert len(runs) == 1  # the 10 s wait already begun is not cut short...
+        thread.wake()  # ...but after the next run the new period holds
+        assert _wait(lambda: len(runs) >= 4, timeout=2.0)
+    finally:
+        thread.stop()
+
+
+def test_wake_runs_every_job_now_and_first_due_delays_a_job() -> None:
+    runs = {"a": 0, "b": 0}
+
+    def run(name: str):
+        return lambda: runs.__setitem__(name, runs[name] + 1)
+
+    late = time.monotonic() + 60.0
+    thread = PeriodicThread([PeriodicTask("a", lambda: 60.0, run("a")), PeriodicTask("b", lambda: 60.0, run("b"), late)],
+                            print, "t")
+    try:
+        assert _wait(lambda: runs["a"] == 1)
+        time.sleep(0.05)
+        assert runs == {"a": 1, "b": 0}  # b's first run is a minute away
+        thread.wake()
+        assert _wait(lambda: runs == {"a": 2, "b": 1})
+    finally:
+        thread.stop()
+
+
+def test_a_job_that_raises_is_reported_and_the_others_go_on() -> None:
+    errors: list[tuple[str, str]] = []
+    ok = [0]
+
+    def boom() -> None:
+        raise ValueError("bad output")
+
+    thread = PeriodicThread(
+        [PeriodicTask("boom", lambda: 0.01, boom), PeriodicTask("ok", lambda: 0.01, lambda: ok.__setitem__(0, ok[0] + 1))],
+        lambda name, exc: errors.append((name, str(exc))), "t",
+    )
+    try:
+        assert _wait(lambda: len(errors) >= 3 and ok[0] >= 3)
+        assert thread.alive
+    finally:
+        thread.stop()
+    assert set(errors) == {("boom", "bad output")}
+
+
+def test_stop_waits_for_the_running_job_and_leaves_no_thread() -> None:
+    started, release = threading.Event(), threading.Event()
+    done: list[bool] = []
+
+    def slow() -> None:
+        started.set()
+        release.wait(5.0)
+        done.append(True)
+
+    thread = PeriodicThread([PeriodicTask("slow", lambda: 0.01, slow)], print, "t-slow")
+    assert started.wait(5.0)
+    assert not thread.stop(timeout=0.05)  # still in the job
+    release.set()
+    assert thread.stop()
+    assert done == [True]
+    assert not any(t.name == "t-slow" for t in threading.enumerate())

@@ -208,7 +208,8 @@ class JoinerNode(Node):
         self.create_timer(0.25, self._on_expire_timer)
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_service(Trigger, "~/load_map", self._on_load_map)
-        self._output_lock = threading.Lock()  # one publication at a time (the output thread's, ~/load_map's)
+        # one publication at a time; ~/reset and ~/load_map wait for one under way (it holds the old map)
+        self._output_lock = threading.Lock()
         tasks = [PeriodicTask("publish", lambda: 1.0 / self.config.publish_rate, self._on_publish_timer)]
         if self.store is not None:
             tasks.append(PeriodicTask("snapshot", lambda: SNAPSHOT_CHECK_PERIOD, self._on_snapshot_timer))
@@ -397,6 +398,16 @@ class JoinerNode(Node):
     # ------------------------------------------------------------------ services
 
     def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        # after a publication under way: it must not bring the cleared map's pose and covariance back
+        with self._output_lock:
+            self._reset()
+        self._outputs.wake()
+        response.success, response.message = True, "global map cleared"
+        self.get_logger().info("global map reset")
+        return response
+
+    def _reset(self) -> None:
+        """Clear the map, the per-submap records and the refiner; snapshot the empty state (under the output lock)."""
         with self._lock:
             self.joiner.reset()
             self.n_received = 0
@@ -415,10 +426,6 @@ class JoinerNode(Node):
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
-        self._outputs.wake()
-        response.success, response.message = True, "global map cleared"
-        self.get_logger().info("global map reset")
-        return response
 
     def _on_save_map(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
@@ -450,13 +457,14 @@ class JoinerNode(Node):
         if not self.config.load_path:
             response.success, response.message = False, "parameter load_path is empty: set it to a state file (state.npz)"
             return response
-        try:
-            self._load(path)
-        except (LinearSlamError, OSError) as exc:
-            response.success, response.message = False, f"load failed: {exc}"
-            return response
-        self._next_publish = 0.0
-        self._on_publish_timer()  # the loaded map, at once
+        with self._output_lock:  # after a publication of the old map under way, never beside it
+            try:
+                self._load(path)
+            except (LinearSlamError, OSError) as exc:
+                response.success, response.message = False, f"load failed: {exc}"
+                return response
+            self._next_publish = 0.0
+            self._publish_due()  # the loaded map, at once
         response.success, response.message = True, f"loaded {self.joiner.state.n_joined} submaps from {path}"
         return response
 
@@ -649,7 +657,8 @@ class JoinerNode(Node):
             self.get_logger().error(f"cannot write timing_file {path}: {exc}")
 
     def _on_output_error(self, task: str, exc: BaseException) -> None:
-        self.get_logger().error(f"{task} failed: {type(exc).__name__}: {exc}")
+        log = self.get_logger().error if self.context.ok() else self.get_logger().debug  # shutting down
+        log(f"{task} failed: {type(exc).__name__}: {exc}")
 
     def _on_publish_timer(self) -> None:
         with self._output_lock:

@@ -14,6 +14,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+FALLBACK_PERIOD = 1.0
+"""s until the next run of a job whose period could not be read."""
+
 
 @dataclass
 class PeriodicTask:
@@ -21,8 +24,8 @@ class PeriodicTask:
 
     Attributes:
         name: for the error message when ``run`` raises.
-        period: returns the current period in seconds (read before each wait, so a parameter
-            change takes effect at once).
+        period: returns the current period in seconds, read at each run (a parameter change
+            takes effect from the next run; a period that cannot be read counts as 1 s).
         run: the job.
     """
 
@@ -52,7 +55,6 @@ class PeriodicThread:
         self._on_error = on_error
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self.runs = {t.name: 0 for t in tasks}
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
@@ -75,6 +77,12 @@ class PeriodicThread:
         """Whether the thread is running."""
         return self._thread.is_alive()
 
+    def _report(self, name: str, exc: BaseException) -> None:
+        try:
+            self._on_error(name, exc)
+        except Exception:  # noqa: BLE001 - a failing report must not end the thread
+            pass
+
     def _loop(self) -> None:
         while not self._stop.is_set():
             for task in self._tasks:
@@ -83,12 +91,15 @@ class PeriodicThread:
                 now = time.monotonic()
                 if now < task.due:
                     continue
-                task.due = now + task.period()
+                try:
+                    task.due = now + task.period()
+                except Exception as exc:  # noqa: BLE001 - reported; the job still runs, and again in 1 s
+                    task.due = now + FALLBACK_PERIOD
+                    self._report(task.name, exc)
                 try:
                     task.run()
                 except Exception as exc:  # noqa: BLE001 - reported, and the other jobs go on
-                    self._on_error(task.name, exc)
-                self.runs[task.name] += 1
+                    self._report(task.name, exc)
             wait = min(t.due for t in self._tasks) - time.monotonic() if self._tasks else 1.0
             if wait > 0 and self._wake.wait(wait):
                 self._wake.clear()

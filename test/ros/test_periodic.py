@@ -19,11 +19,13 @@ def _wait(condition, timeout: float = 5.0) -> bool:
 
 def test_jobs_run_at_once_then_at_their_period() -> None:
     times: list[float] = []
+    start = time.monotonic()
     thread = PeriodicThread([PeriodicTask("tick", lambda: 0.05, lambda: times.append(time.monotonic()))], print, "t")
     try:
         assert _wait(lambda: len(times) >= 5)
     finally:
         assert thread.stop()
+    assert times[0] - start < 0.04  # the first run does not wait for a period
     gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
     assert min(gaps) >= 0.045  # never early
     assert not thread.alive
@@ -98,3 +100,21 @@ def test_stop_waits_for_the_running_job_and_leaves_no_thread() -> None:
     assert thread.stop()
     assert done == [True]
     assert not any(t.name == "t-slow" for t in threading.enumerate())
+
+
+def test_a_period_that_cannot_be_read_is_reported_and_the_job_runs_every_second() -> None:
+    errors: list[str] = []
+    runs: list[float] = []
+
+    def period() -> float:
+        raise ZeroDivisionError("publish_rate 0")
+
+    thread = PeriodicThread([PeriodicTask("publish", period, lambda: runs.append(time.monotonic()))],
+                            lambda name, exc: errors.append(f"{name}: {exc}"), "t")
+    try:
+        assert _wait(lambda: len(runs) >= 2, timeout=3.0)
+        assert thread.alive
+    finally:
+        thread.stop()
+    assert errors[0] == "publish: publish_rate 0"
+    assert runs[1] - runs[0] >= 0.95  # the fallback period

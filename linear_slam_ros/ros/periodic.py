@@ -9,6 +9,7 @@ views, snapshots, the summary) runs here, on wall-clock periods, never blocking 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -78,10 +79,8 @@ class PeriodicThread:
         return self._thread.is_alive()
 
     def _report(self, name: str, exc: BaseException) -> None:
-        try:
+        with contextlib.suppress(Exception):  # a failing report must not end the thread
             self._on_error(name, exc)
-        except Exception:  # noqa: BLE001 - a failing report must not end the thread
-            pass
 
     def _loop(self) -> None:
         while not self._stop.is_set():

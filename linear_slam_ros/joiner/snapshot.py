@@ -64,19 +64,26 @@ from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 logger = logging.getLogger(__name__)
 
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 4
+FORMAT_VERSION = 5
 """Bumped whenever the tree of a state changes; a file of another version is refused, but for the
 versions in :data:`MIGRATED` (2: chains and streams, for islands and several robots; 3: the χ² gate's
-variance factor, ``JoinerState.variance``; 4: deferred merges and blob references)."""
+variance factor, ``JoinerState.variance``; 4: deferred merges and blob references; 5: the variance
+factor's ``tail_confidence`` instead of ``prior_submaps``)."""
 
+_PRIOR_SUBMAPS_DROPPED = (
+    "the χ² gate's tail calibration is an upper confidence bound since version 5: the file's "
+    "prior_submaps is not used (the fused NIS are kept)"
+)
 MIGRATED: dict[int, str | None] = {
     2: "the χ² gate's variance factor starts afresh (version 2 did not keep one)",
-    3: None,
+    3: _PRIOR_SUBMAPS_DROPPED,
+    4: _PRIOR_SUBMAPS_DROPPED,
 }
 """Older versions still read, and what reading them changes (``None``: nothing, no warning): a
 version 2 tree has no ``JoinerState.variance``, which takes its default
-(:class:`~linear_slam_ros.joining.gate.VarianceFactor`, the prior alone); everything else is read
-exactly. A version 3 tree is a version 4 tree without deferred merges or blobs."""
+(:class:`~linear_slam_ros.joining.gate.VarianceFactor`, the prior alone); a version 3 or 4
+variance factor's ``prior_submaps`` is dropped (:func:`_variance_factor`); everything else is
+read exactly. A version 3 tree is a version 4 tree without deferred merges or blobs."""
 
 BLOB_MIN_BYTES = 256 << 10
 """Maps of at least this many bytes of arrays are written as blobs when a :class:`BlobStore` is given."""
@@ -84,6 +91,12 @@ BLOB_MIN_BYTES = 256 << 10
 
 class SnapshotError(LinearSlamError):
     """A state file cannot be written or read back exactly (missing, truncated, corrupt, other version)."""
+
+
+def _variance_factor(prior_submaps: int | None = None, **fields: Any) -> VarianceFactor:
+    """Rebuild a :class:`VarianceFactor`; the ``prior_submaps`` of versions 3 and 4 is dropped (see :data:`MIGRATED`)."""
+    del prior_submaps
+    return VarianceFactor(**fields)
 
 
 CLASSES: dict[str, Callable[..., Any]] = {
@@ -97,7 +110,7 @@ CLASSES: dict[str, Callable[..., Any]] = {
     "Group": Group,
     "FeatureMap": FeatureMap,
     "CovarianceMap": CovarianceMap,
-    "VarianceFactor": VarianceFactor,
+    "VarianceFactor": _variance_factor,
     "LocalMap": LocalMap.trusted,  # computed by the core: not validated again
 }
 """Dataclasses a state file may hold, and how each is rebuilt from its fields."""

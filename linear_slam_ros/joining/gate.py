@@ -84,8 +84,32 @@ PRIOR_DOF = 20.0
 TAIL_QUANTILE = 0.95
 """Quantile at which :class:`VarianceFactor` calibrates the scale on the stream's own upper tail."""
 
-PRIOR_SUBMAPS = 20
-"""Submaps of prior belief, at scale 1, in the tail calibration of :class:`VarianceFactor`."""
+TAIL_CONFIDENCE = 0.99
+"""Confidence with which the tail calibration of :class:`VarianceFactor` bounds the
+:data:`TAIL_QUANTILE` quantile from above (an order statistic: needs 90 fused submaps at 0.99)."""
+
+EARLY_TAIL_MARGIN = 2.0
+"""Before that bound exists, the tail calibration is this many times the largest ``u`` so far, at most 1."""
+
+
+def tail_order_statistic(n: int, quantile: float, confidence: float) -> int | None:
+    """Return the smallest ``k`` whose ``k``-th smallest of ``n`` samples bounds their ``quantile`` from above.
+
+    Distribution-free: the ``k``-th order statistic exceeds the ``quantile`` quantile of any
+    continuous distribution with probability ``P(Binomial(n, quantile) <= k - 1)``; ``k`` is the
+    smallest with that probability at least ``confidence``. ``None`` when even the largest sample
+    is not enough (``1 - quantile**n < confidence``).
+    """
+    if n <= 0 or 1.0 - quantile**n < confidence:
+        return None
+    lo, hi = 1, n  # bdtr grows with k: the smallest k with bdtr(k - 1, n, quantile) >= confidence
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if float(scipy.special.bdtr(mid - 1, n, quantile)) >= confidence:
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
 
 
 @dataclass(frozen=True)
@@ -101,13 +125,17 @@ class VarianceFactor:
     mean alone would over-tighten a stream with heavy tails (VicPark6898: mean 0.06, and a gate at
     that scale splits off most of its clean submaps, the map then drifting from every later one).
     So the scale is also calibrated on the stream's own upper tail: each fused submap gives
-    ``u = NIS / chi2.ppf(TAIL_QUANTILE, dof)``, and ``s²`` is at least the ``TAIL_QUANTILE``
-    quantile of the ``u`` so far together with ``PRIOR_SUBMAPS`` prior submaps at ``u = 1``. For
-    χ²-consistent submaps at any scale both estimates agree (a fraction ``1 - TAIL_QUANTILE`` of
-    them exceeds that quantile); for heavy tails the tail estimate is the larger. The prior keeps a
-    short stream at 1 (the tail calibration stays at 1 for the first 360 submaps, then follows the
-    stream's), and the F quantile of :meth:`threshold` widens the thresholds while ``nu`` is small;
-    ``floor`` is a hard lower bound (1: the gate never tightens).
+    ``u = NIS / chi2.ppf(TAIL_QUANTILE, dof)``, and ``s²`` is at least an upper bound, with
+    confidence ``tail_confidence``, of the ``TAIL_QUANTILE`` quantile of ``u``: the order
+    statistic of :func:`tail_order_statistic` (distribution-free). For χ²-consistent submaps at
+    any scale both estimates agree (a fraction ``1 - TAIL_QUANTILE`` of them exceeds that
+    quantile); for heavy tails the tail estimate is the larger. Until the stream has enough fused
+    submaps for that bound (90 at 0.99), the tail calibration is ``EARLY_TAIL_MARGIN`` times the
+    largest ``u`` so far, at most 1 (the nominal scale): a stream whose information is too loose
+    tightens early (the mean's prior still holds ``s²`` near 1 for the first few tens of
+    scalars), one with a large early ``u`` stays at 1. The F quantile of :meth:`threshold`
+    widens the thresholds while ``nu`` is small; ``floor`` is a hard lower bound (1: the gate
+    never tightens).
 
     Attributes:
         nis: sum of the fused NIS (dimensionless).
@@ -115,7 +143,7 @@ class VarianceFactor:
         prior_dof: weight of the prior ``s² = 1``, in scalars (``inf``: ``s² = 1`` is known).
         floor: ``s²`` is never taken below this (0: no bound but the estimates').
         tail: ``u`` of each fused submap, in order (empty: only the prior).
-        prior_submaps: prior submaps at ``u = 1`` in the tail calibration.
+        tail_confidence: confidence of the tail calibration's bound, in (0, 1).
     """
 
     nis: float = 0.0
@@ -123,13 +151,15 @@ class VarianceFactor:
     prior_dof: float = PRIOR_DOF
     floor: float = 0.0
     tail: tuple[float, ...] = ()
-    prior_submaps: int = PRIOR_SUBMAPS
+    tail_confidence: float = TAIL_CONFIDENCE
 
     def __post_init__(self) -> None:
-        for name in ("nis", "dof", "prior_dof", "floor", "prior_submaps"):
+        for name in ("nis", "dof", "prior_dof", "floor"):
             value = getattr(self, name)
             if not value >= 0.0:
                 raise ConfigError(f"VarianceFactor.{name}={value!r} must be a number >= 0")
+        if not 0.0 < self.tail_confidence < 1.0:
+            raise ConfigError(f"VarianceFactor.tail_confidence={self.tail_confidence!r} must be in (0, 1)")
         if self.prior_dof + self.dof <= 0.0:
             raise ConfigError(f"VarianceFactor: prior_dof={self.prior_dof!r} + dof={self.dof!r} must be > 0")
 
@@ -150,11 +180,14 @@ class VarianceFactor:
 
     @functools.cached_property
     def tail_scale(self) -> float:
-        """The tail estimate: the ``TAIL_QUANTILE`` quantile of ``tail`` and ``prior_submaps`` ones."""
+        """The tail estimate: an upper bound of the ``TAIL_QUANTILE`` quantile of ``tail`` (1 with none)."""
         if not self.tail:
-            return 1.0 if self.prior_submaps else 0.0
-        values = np.concatenate([np.ones(self.prior_submaps), np.asarray(self.tail, dtype=np.float64)])
-        return float(np.quantile(values, TAIL_QUANTILE))
+            return 1.0
+        values = np.asarray(self.tail, dtype=np.float64)
+        k = tail_order_statistic(values.size, TAIL_QUANTILE, self.tail_confidence)
+        if k is None:
+            return min(1.0, EARLY_TAIL_MARGIN * float(values.max()))
+        return float(np.partition(values, k - 1)[k - 1])
 
     @property
     def value(self) -> float:
@@ -801,8 +834,8 @@ def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
 
 
 __all__ = [
-    "ENTRY_BLOCK_MAX", "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "PRIOR_DOF", "PRIOR_SUBMAPS", "TAIL_QUANTILE", "EntryCache",
-    "EntryCovariance", "GateResult", "Marginal", "MarginalFn", "PrefixCache", "VarianceFactor", "VariableNis",
-    "chi2_threshold", "gate_submap", "marginalise_out", "online_dc_holds", "online_dc_marginal",
-    "online_dc_marginal_by_entries",
+    "EARLY_TAIL_MARGIN", "ENTRY_BLOCK_MAX", "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "PRIOR_DOF", "TAIL_CONFIDENCE",
+    "TAIL_QUANTILE", "EntryCache", "EntryCovariance", "GateResult", "Marginal", "MarginalFn", "PrefixCache",
+    "VarianceFactor", "VariableNis", "chi2_threshold", "gate_submap", "marginalise_out", "online_dc_holds",
+    "online_dc_marginal", "online_dc_marginal_by_entries", "tail_order_statistic",
 ]

@@ -119,6 +119,27 @@ def test_a_version_2_file_is_read_with_a_fresh_variance_factor(maps, tmp_path, c
     _same(replace(back.state, variance=j.state.variance), j.state)
 
 
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_version_3_or_4_variance_factor_drops_its_prior_submaps(maps, tmp_path, caplog, version):
+    j = Joiner("online-dc", gate_probability=0.99999999)
+    for seq, m in enumerate(maps[:5], start=1):
+        j.offer(m, seq)
+    arrays = encode_state(j.save())
+    header = json.loads(bytes(arrays["header"]).decode())
+    fields = header["tree"]["fields"]["state"]["fields"]["variance"]["fields"]
+    del fields["tail_confidence"]
+    fields["prior_submaps"] = 20  # what versions 3 and 4 wrote
+    header["version"] = version
+    body = {k: v for k, v in arrays.items() if k != "header"}
+    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    old = tmp_path / f"v{version}.npz"
+    _rewrite(old, arrays)
+    back = read_snapshot(old)
+    assert back.state.variance == j.state.variance and len(back.state.variance.tail) > 0
+    assert "prior_submaps is not used" in caplog.text
+
+
 def test_fortran_ordered_covariance_keeps_its_order(maps):
     j = Joiner("sequential")
     for seq, m in enumerate(maps[:3], start=1):
@@ -353,7 +374,7 @@ def _first(node, key):
 @pytest.mark.parametrize(
     ("change", "expected"),
     [
-        (lambda h: h.update(version=[FORMAT_VERSION]), r"format version \[4\], this build reads version 4"),
+        (lambda h: h.update(version=[FORMAT_VERSION]), rf"format version \[{FORMAT_VERSION}\], this build reads version {FORMAT_VERSION}"),
         (lambda h: h.update(version=True), r"format version True"),
         (lambda h: _first(h["tree"], "fields").update(fields=[]), r"malformed state \(AttributeError"),
         (lambda h: h.update(tree={"__tuple__": [float("nan")]}), r"malformed state \(ValueError"),

@@ -15,12 +15,13 @@ from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.joining.gate import (
     PRIOR_DOF,
-    PRIOR_SUBMAPS,
+    TAIL_CONFIDENCE,
     TAIL_QUANTILE,
     GateResult,
     Marginal,
     VarianceFactor,
     gate_submap,
+    tail_order_statistic,
 )
 from linear_slam_ros.joining.pairwise import join_pair
 
@@ -79,10 +80,17 @@ def test_variance_factor_estimate_floor_and_limits():
     # heavy tails (a tenth of the submaps at scale 4, the rest at 0.05: mean 0.45): the tail keeps the scale up
     heavy = tuple(float(x) for x in np.where(rng.random(2000) < 0.1, 16.0, 0.2) * np.asarray(u))
     assert VarianceFactor(nis=loose.nis, dof=loose.dof, tail=heavy).tail_scale > 1.0
-    # a short stream is not tightened: the prior submaps at 1 hold the tail quantile for 360 submaps
-    short = VarianceFactor(nis=0.0, dof=300.0, tail=(0.0,) * (PRIOR_SUBMAPS * 18))
-    assert short.mean < 0.1 and short.value == pytest.approx(1.0)
-    assert VarianceFactor(nis=0.0, dof=300.0, tail=(0.0,) * (PRIOR_SUBMAPS * 21)).value < 0.1
+    # before the bound exists (89 fused submaps at 0.99), twice the largest u, at most 1
+    early = (0.01,) * 88 + (0.1,)
+    assert VarianceFactor(nis=0.0, dof=300.0, tail=early).tail_scale == pytest.approx(0.2)
+    assert VarianceFactor(nis=0.0, dof=300.0, tail=(*early[:-1], 0.7)).tail_scale == 1.0
+    assert VarianceFactor(nis=0.0, dof=300.0, tail=(*early[:-1], 0.7)).value == 1.0
+    # from 90 on, the order statistic: the largest of 90, then of 100 the 100th, of 470 the 458th
+    assert VarianceFactor(nis=0.0, dof=300.0, tail=(*early, 0.05)).tail_scale == 0.1
+    spread = tuple(float(x) for x in rng.permutation(np.arange(1, 471) / 1000.0))
+    assert VarianceFactor(nis=0.0, dof=3000.0, tail=spread).tail_scale == pytest.approx(0.458)
+    assert VarianceFactor(nis=0.0, dof=3000.0, tail=spread[:100]).tail_scale == max(spread[:100])
+    assert VarianceFactor().tail_scale == 1.0 and VarianceFactor().value == 1.0
     few = VarianceFactor(nis=5.0, dof=5.0, tail=(1.0,))  # F quantile: a short stream's thresholds stay wide
     assert few.threshold(0.999, 3) > scipy.stats.chi2.ppf(0.999, 3)
     few, many = VarianceFactor(nis=5.0, dof=5.0), VarianceFactor(nis=1e6, dof=1e6)
@@ -96,9 +104,20 @@ def test_variance_factor_estimate_floor_and_limits():
     assert few.updated(passed) == VarianceFactor(nis=13.0, dof=9.0, tail=(u,)) and few.updated(rejected) is few
 
 
+def test_tail_order_statistic_is_the_binomial_bound():
+    for n in (90, 100, 470, 3000):
+        k = tail_order_statistic(n, TAIL_QUANTILE, TAIL_CONFIDENCE)
+        assert scipy.stats.binom.cdf(k - 1, n, TAIL_QUANTILE) >= TAIL_CONFIDENCE
+        assert k == 1 or scipy.stats.binom.cdf(k - 2, n, TAIL_QUANTILE) < TAIL_CONFIDENCE
+    assert [tail_order_statistic(n, TAIL_QUANTILE, TAIL_CONFIDENCE) for n in (0, 1, 89, 90, 100, 470)] == [
+        None, None, None, 90, 100, 458]
+    assert tail_order_statistic(10, 0.5, 0.9) == 8  # P(Bin(10, 1/2) <= 7) = 0.945, <= 6: 0.828
+
+
 @pytest.mark.parametrize(("field", "value", "match"), [
     ("nis", -1.0, r"VarianceFactor.nis=-1.0 must be"), ("dof", float("nan"), r"VarianceFactor.dof=nan must be"),
     ("prior_dof", -2.0, r"VarianceFactor.prior_dof=-2.0 must be"),
+    ("tail_confidence", 1.0, r"VarianceFactor.tail_confidence=1.0 must be in \(0, 1\)"),
 ])
 def test_variance_factor_errors_name_the_value(field, value, match):
     with pytest.raises(ConfigError, match=match):

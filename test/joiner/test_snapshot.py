@@ -374,7 +374,8 @@ def _first(node, key):
 @pytest.mark.parametrize(
     ("change", "expected"),
     [
-        (lambda h: h.update(version=[FORMAT_VERSION]), rf"format version \[{FORMAT_VERSION}\], this build reads version {FORMAT_VERSION}"),
+        (lambda h: h.update(version=[FORMAT_VERSION]),
+         rf"format version \[{FORMAT_VERSION}\], this build reads version {FORMAT_VERSION}"),
         (lambda h: h.update(version=True), r"format version True"),
         (lambda h: _first(h["tree"], "fields").update(fields=[]), r"malformed state \(AttributeError"),
         (lambda h: h.update(tree={"__tuple__": [float("nan")]}), r"malformed state \(ValueError"),

@@ -386,7 +386,7 @@ def online_dc_marginal(state: OnlineDCState, keys: IntArray, cache: PrefixCache 
     if len(state.stack) == 1:
         return Marginal.of_map(top, keys)
     prefix = cache.merged(state.stack[:-1])
-    wanted = set(np.asarray(keys).tolist()) | set(top.key_set)
+    wanted = set(np.asarray(keys).tolist()) | set(top.key_set) | {pose_key(top.frame_id)}
     if prefix.end_id is not None:
         wanted.add(pose_key(prefix.end_id))
     reduced = Marginal.of_map(prefix, np.fromiter(wanted, np.int64, len(wanted)))
@@ -507,8 +507,10 @@ def online_dc_marginal_by_entries(
 
     Each entry is reduced to the variables that matter: the requested ones, those it shares with
     another entry, and its end pose (the seam of the next join); the small maps are joined oldest
-    first at their seams, as the stack is merged. Exact for the same reason as
-    :func:`online_dc_marginal`. Each entry's information is factorised once while it is on the
+    first at their seams, as the stack is merged; after each join, what no later entry holds (as a
+    variable or as its frame) and nobody asked for is marginalised out, so the running map stays
+    small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster, README). Exact for the same
+    reason as :func:`online_dc_marginal`. Each entry's information is factorised once while it is on the
     stack (:class:`EntryCovariance`): a call costs solves for variables not asked before and
     dense algebra on the kept ones. ``None`` when the map holds none of ``keys``. An entry left
     with no variable (in its own end pose's frame, sharing nothing) falls back to
@@ -525,11 +527,15 @@ def online_dc_marginal_by_entries(
     requested = set(np.asarray(keys).tolist())
     if len(maps) == 1:
         wanted = requested
-    else:
-        all_keys, counts = np.unique(np.concatenate([m.keys for m in maps]), return_counts=True)
+    else:  # an entry's frame pose counts: a change of frame makes it a variable of that entry
+        frames = np.array([pose_key(m.frame_id) for m in maps], dtype=np.int64)
+        all_keys, counts = np.unique(np.concatenate([*(m.keys for m in maps), frames]), return_counts=True)
         wanted = requested | set(all_keys[counts > 1].tolist())
+    later: list[set[int]] = [set() for _ in maps]  # keys and frame poses of the entries after each one
+    for i in range(len(maps) - 2, -1, -1):
+        later[i] = later[i + 1] | set(maps[i + 1].key_set) | {pose_key(maps[i + 1].frame_id)}
     current: LocalMap | None = None
-    for h, m in zip(held, maps, strict=True):
+    for h, m, after in zip(held, maps, later, strict=True):
         lookup = m.key_set
         chosen = {lookup[k] for k in wanted if k in lookup}
         if m.end_id is not None and pose_key(m.end_id) in lookup:
@@ -538,6 +544,11 @@ def online_dc_marginal_by_entries(
             return online_dc_marginal(state, keys, cache.prefixes)
         small = h.reduced(np.array(sorted(chosen), dtype=np.int64))
         current = small if current is None else join_at_seam(current, small)
+        if after:  # what no later entry holds and nobody asked for is done with: marginalised out now
+            end = pose_key(current.end_id) if current.end_id is not None else None
+            done = [i for i, k in enumerate(current.keys.tolist()) if k not in requested and k not in after and k != end]
+            if done:
+                current = marginalise_out(current, done)
     assert current is not None
     return Marginal.of_map(current, keys)
 

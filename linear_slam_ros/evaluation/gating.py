@@ -193,6 +193,11 @@ def corrupt(submap: LocalMap, var_index: int, rng: np.random.Generator) -> Local
     return submap.replace(x=x)
 
 
+def any_corruptible(maps: Sequence[LocalMap], clean: CleanPass) -> bool:
+    """Whether a submap has a variable to corrupt: one the map held before it, other than its end pose."""
+    return any(clean.dof[k] > 0 and _common_vars(clean.states[k], maps[k]) for k in range(1, len(maps)))
+
+
 def _common_vars(state: JoinerState, submap: LocalMap) -> list[int]:
     """Variables of ``submap`` the map holds, but its end pose (the chain goes on from it: not a loop closure)."""
     known = global_keys(state)
@@ -227,7 +232,10 @@ def _same(a: LocalMap | None, b: LocalMap | None) -> bool:
 def _draw(
     rng: np.random.Generator, candidates: Sequence[int], clean: CleanPass, maps: Sequence[LocalMap]
 ) -> tuple[int, int, LocalMap]:
-    """One trial's corruption: submap index ``k``, variable index ``v`` in it, the corrupted submap."""
+    """One trial's corruption: submap index ``k``, variable index ``v`` in it, the corrupted submap.
+
+    Submaps of ``candidates`` with nothing to corrupt are drawn again (some must have one: :func:`any_corruptible`).
+    """
     while True:
         k = int(rng.choice(candidates))
         common = _common_vars(clean.states[k], maps[k])
@@ -293,6 +301,11 @@ def run_dataset(
     if not trials:
         return out
     candidates = [k for k in range(1, len(maps)) if clean.dof[k] > 0]
+    if not any_corruptible(maps, clean):  # sphere2500: every variable a submap shares with the map is its end pose
+        logger.warning("gating: %s: no submap shares a variable other than its end pose with the map; "
+                       "no corruption trial can be drawn (clean check only)", name)
+        out.update({"trials": 0, "trials_skipped": "no submap shares a variable other than its end pose with the map"})
+        return out
     detected, errors = 0, []
     rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()

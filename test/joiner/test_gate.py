@@ -158,15 +158,15 @@ def test_cli_report_lists_the_gate_decisions(tmp_path, monkeypatch):
 
 
 def test_the_joiner_carries_the_variance_factor_and_its_gate_tightens_on_loose_information():
-    """A stream whose information is 40 times too loose: the carried factor (once the stream is longer
-    than the prior's 360 submaps) tightens the gate enough to split off a feature moved by 2 m, which
+    """A stream whose information is 40 times too loose: the carried factor (once the tail calibration's
+    confidence bound exists, from 90 fused submaps) tightens the gate enough to split off a feature moved by 2 m, which
     the gate at s² = 1 lets through; reset forgets the factor."""
     from dataclasses import replace
 
     from linear_slam_ros.evaluation.gating import global_keys
     from linear_slam_ros.joining.gate import VarianceFactor
 
-    world = make_world(2, 1350, 40, np.random.default_rng(11), loops=5.0)  # 450 submaps: past the prior's 360
+    world = make_world(2, 1350, 40, np.random.default_rng(11), loops=5.0)  # 450 submaps: well past the bound's 90 fused ones
     clean = noisy_local_maps(world, np.random.default_rng(12), steps_per_map=3, sensor_range=5.0)
     loose = [m.replace(info=m.info / 40.0) for m in clean]
     j = Joiner(JoinMethod.ONLINE_DC, gate_probability=0.99999999)

@@ -33,9 +33,9 @@ class JoinRun:
         seconds: wall time of the joining only (no reading, no output), s.
         step_seconds: per-step wall times, s: one per submap for streaming strategies (for
             ``online-dc`` the final merge is added to the last step), one per pairwise join for
-            batch ones.
+            batch ones (one per level of the tree for pose-map divide and conquer, whose joins of a level are done together).
         n_submaps: number of local maps joined.
-        step_unit: what one step is: ``"per submap"`` or ``"per pairwise join"``.
+        step_unit: what one step is: ``"per submap"``, ``"per pairwise join"`` or ``"per tree level"``.
     """
 
     method: JoinMethod

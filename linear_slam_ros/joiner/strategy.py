@@ -52,6 +52,7 @@ StateT = TypeVar("StateT")
 ResultT = TypeVar("ResultT")
 PER_SUBMAP = "per submap"
 PER_JOIN = "per pairwise join"
+PER_LEVEL = "per tree level"
 Progress = Callable[[int], None]
 """Called with the number of steps (submaps or pairwise joins) just completed."""
 PoseEstimate = tuple[int, npt.NDArray[np.float64]]
@@ -70,7 +71,8 @@ class JoinStrategy(Protocol[StateT, ResultT]):
         blas_threads: BLAS threads measured best for this strategy (``None``: leave as is).
         mmap_threshold: glibc's mmap threshold measured best for this strategy, bytes
             (:func:`~linear_slam_ros.core.runtime.tune_allocator`).
-        run_step: what one timed step of :meth:`run` is: ``"per submap"`` or ``"per pairwise join"``.
+        run_step: what one timed step of :meth:`run` is: ``"per submap"``, ``"per pairwise join"`` or
+            ``"per tree level"``.
     """
 
     method: ClassVar[JoinMethod]

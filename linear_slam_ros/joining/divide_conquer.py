@@ -17,6 +17,7 @@ from typing import TypeVar
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.joining.batched import divide_and_conquer_levels
 from linear_slam_ros.joining.pairwise import join_at_seam, to_end_frame
 
 T = TypeVar("T")
@@ -89,19 +90,22 @@ def merge_stack(stack: Sequence[T], join: Callable[[T, T], T]) -> T:
 
 
 def join_divide_and_conquer(
-    maps: Sequence[LocalMap], on_join: Callable[[float], None] | None = None
+    maps: Sequence[LocalMap], on_level: Callable[[float, int], None] | None = None
 ) -> LocalMap:
     """Join pose maps by divide and conquer, at the seams; the result is in the last end pose's frame.
 
+    The tree of ``divide_and_conquer(maps, join_at_seam)``, each level's joins done together
+    (:func:`~linear_slam_ros.joining.batched.divide_and_conquer_levels`: the same result up to round-off).
+
     Args:
         maps: local maps in order; map ``i + 1`` starts where map ``i`` ends.
-        on_join: called after every pairwise join with its wall time in seconds.
+        on_level: called after every level of the tree with its wall time (s) and its number of pairwise joins.
 
     Raises:
-        InvalidMapError: ``maps`` is empty.
+        InvalidMapError: ``maps`` is empty, or the maps differ in dimension.
         FrameError: neighbours share no frame.
     """
-    return to_end_frame(divide_and_conquer(maps, join_at_seam, on_join))
+    return to_end_frame(divide_and_conquer_levels(maps, on_level))
 
 
 class Deferred:

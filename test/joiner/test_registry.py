@@ -10,7 +10,7 @@ from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.joiner.registry import STRATEGIES, get_strategy, methods
-from linear_slam_ros.joiner.strategy import PER_JOIN, PER_SUBMAP, JoinMethod, MapType
+from linear_slam_ros.joiner.strategy import PER_JOIN, PER_LEVEL, PER_SUBMAP, JoinMethod, MapType
 
 
 def test_every_method_and_map_type_has_a_strategy():
@@ -18,7 +18,8 @@ def test_every_method_and_map_type_has_a_strategy():
     for (method, map_type), strategy in STRATEGIES.items():
         assert (strategy.method, strategy.map_type) == (method, map_type)
         assert strategy.result_type is (FeatureMap if map_type is MapType.FEATURE_ONLY else LocalMap)
-        assert strategy.run_step in (PER_SUBMAP, PER_JOIN)
+        assert strategy.run_step in (PER_SUBMAP, PER_JOIN, PER_LEVEL)
+    assert get_strategy(JoinMethod.DC).run_step == PER_LEVEL  # pose maps: a level's joins are done together
     assert methods(MapType.AS_IS, online_only=True) == (JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC)
     assert methods(MapType.FEATURE_ONLY, online_only=False) == tuple(JoinMethod)
 

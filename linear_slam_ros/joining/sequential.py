@@ -39,6 +39,7 @@ from linear_slam_ros.core.local_map import (
     VariableLayout,
     pose_key,
     replaced_fields,
+    seed_key_lookup,
     to_dense,
     var_offsets,
 )
@@ -54,10 +55,14 @@ _syr2k = scipy.linalg.blas.get_blas_funcs("syr2k", dtype=np.float64)
 
 
 def _sym_columns(lower: FloatArray, cols: IntArray) -> FloatArray:
-    """Return full columns ``cols`` of a symmetric matrix stored in its lower triangle."""
-    rows = np.arange(lower.shape[0])[:, None]
-    c = cols[None, :]
-    return lower[np.maximum(rows, c), np.minimum(rows, c)]
+    """Return full columns ``cols`` of a symmetric matrix stored in its lower triangle.
+
+    Entry ``(r, c)`` is ``lower[r, c]`` on and below the diagonal and ``lower[c, r]`` above it:
+    two slices (whole columns, whole rows) and a choice, not a gather of single entries.
+    """
+    below = lower[:, cols]
+    above = lower[cols, :].T
+    return np.where(np.arange(lower.shape[0])[:, None] >= cols[None, :], below, above)
 
 
 def _symmetrize_lower(lower: FloatArray) -> FloatArray:
@@ -232,10 +237,18 @@ class CovarianceMap(VariableLayout):
         cov_t = _syr2k(1.0, f_tilde, m, beta=1.0, c=cov_t, lower=1, overwrite_c=True)
         ids = self.ids.copy()
         ids[slot] = self.frame_id
-        return self.replace(
+        moved = self.replace(
             frame_id=new_frame_id, ids=ids, x=reframe(d, self.x, layout), cov_tilde=cov_t, rot=rot_new,
             ang_blocks=ang_new,
         )
+        old_key = pose_key(self.frame_id)
+        keys = self.keys.copy()
+        keys[slot] = old_key
+        key_set = dict(self.key_set)
+        del key_set[pose_key(new_frame_id)]
+        key_set[old_key] = slot
+        seed_key_lookup(moved, keys, key_set)  # one key changed: derived, not rebuilt
+        return moved
 
 
 @dataclass(frozen=True)
@@ -310,7 +323,9 @@ def _fuse(global_map: CovarianceMap, submap: LocalMap) -> CovarianceMap:
         cov_t = _syrk(-1.0, factor, beta=1.0, c=cov_t, lower=1, overwrite_c=True)
         s_cc_post = s_cc - s_cc @ weight @ s_cc
     if not n_new:
-        return g.replace(x=x, cov_tilde=cov_t, end_id=submap.end_id if submap.end_id is not None else g.end_id)
+        same = g.replace(x=x, cov_tilde=cov_t, end_id=submap.end_id if submap.end_id is not None else g.end_id)
+        seed_key_lookup(same, g.keys, g.key_set)  # the same variables (nobody mutates a map's lookup)
+        return same
 
     kinds_new = submap.kinds[new_vars]
     n_new_poses = int(np.count_nonzero(kinds_new == POSE))
@@ -334,7 +349,12 @@ def _fuse(global_map: CovarianceMap, submap: LocalMap) -> CovarianceMap:
         cov_t[n_g:, :n_g] = 0.0
         cov_nn = cov_nn_cond
     cov_t[n_g:, n_g:] = q_nn_inv @ cov_nn @ q_nn_inv.T
-    return merged.replace(x=np.concatenate([x, x_new]), cov_tilde=cov_t)
+    out = merged.replace(x=np.concatenate([x, x_new]), cov_tilde=cov_t)
+    new_keys = submap.keys[new_vars]
+    key_set = dict(lookup)
+    key_set.update(zip(new_keys.tolist(), range(g.n_vars, g.n_vars + new_vars.size), strict=True))
+    seed_key_lookup(out, np.concatenate([g.keys, new_keys]), key_set)
+    return out
 
 
 def sequential_step(state: SequentialState, submap: LocalMap) -> SequentialState:

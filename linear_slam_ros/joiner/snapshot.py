@@ -110,10 +110,14 @@ CLASSES: dict[str, Callable[..., Any]] = {
     "Group": Group,
     "FeatureMap": FeatureMap,
     "CovarianceMap": CovarianceMap,
-    "VarianceFactor": _variance_factor,
+    "VarianceFactor": VarianceFactor,
     "LocalMap": LocalMap.trusted,  # computed by the core: not validated again
 }
 """Dataclasses a state file may hold, and how each is rebuilt from its fields."""
+
+CLASSES_BEFORE_5: dict[str, Callable[..., Any]] = {**CLASSES, "VarianceFactor": _variance_factor}
+"""How the files of versions 3 and 4 are rebuilt: their variance factor's ``prior_submaps`` is dropped.
+A file of the current version that names that field is malformed (refused)."""
 
 ENUMS: dict[str, type[enum.Enum]] = {"JoinMethod": JoinMethod, "MapType": MapType, "OutputFrame": OutputFrame}
 
@@ -374,10 +378,13 @@ def blob_names(path: Path) -> set[str]:
 
 
 class _Decoder:
-    def __init__(self, arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobStore | None) -> None:
+    def __init__(
+        self, arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobStore | None, version: int = FORMAT_VERSION
+    ) -> None:
         self.arrays = arrays
         self.where = where
         self.blobs = blobs
+        self.classes = CLASSES_BEFORE_5 if version < 5 else CLASSES
 
     def array(self, key: Any) -> npt.NDArray[Any]:
         if not isinstance(key, str) or key not in self.arrays:
@@ -413,7 +420,7 @@ class _Decoder:
                 raise SnapshotError(f"state file {self.where} names blob {node['__blob__']!r} and has no blob folder")
             return self.blobs.read(node["__blob__"], self.where)
         if "__type__" in node:
-            build = CLASSES.get(node["__type__"])
+            build = self.classes.get(node["__type__"])
             if build is None:
                 raise SnapshotError(f"state file {self.where}: class {node['__type__']!r} is not one a state file may hold")
             return build(**{k: self.decode(v) for k, v in node["fields"].items()})
@@ -459,7 +466,7 @@ def _decode_state(arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobSt
     if version != FORMAT_VERSION and MIGRATED[version] is not None:
         logger.warning("state file %s: format version %s read by this build (version %d): %s", where, version,
                        FORMAT_VERSION, MIGRATED[version])
-    return _Decoder(body, where, blobs).decode(header["tree"])
+    return _Decoder(body, where, blobs, version).decode(header["tree"])
 
 
 def _read_arrays(path: Path) -> dict[str, npt.NDArray[Any]]:

@@ -99,7 +99,13 @@ def tail_order_statistic(n: int, quantile: float, confidence: float) -> int | No
     continuous distribution with probability ``P(Binomial(n, quantile) <= k - 1)``; ``k`` is the
     smallest with that probability at least ``confidence``. ``None`` when even the largest sample
     is not enough (``1 - quantile**n < confidence``).
+
+    Raises:
+        ConfigError: ``quantile`` or ``confidence`` is not in (0, 1).
     """
+    for name, value in (("quantile", quantile), ("confidence", confidence)):
+        if not 0.0 < value < 1.0:
+            raise ConfigError(f"tail order statistic: {name}={value!r} must be in (0, 1)")
     if n <= 0 or 1.0 - quantile**n < confidence:
         return None
     lo, hi = 1, n  # bdtr grows with k: the smallest k with bdtr(k - 1, n, quantile) >= confidence
@@ -160,6 +166,9 @@ class VarianceFactor:
                 raise ConfigError(f"VarianceFactor.{name}={value!r} must be a number >= 0")
         if not 0.0 < self.tail_confidence < 1.0:
             raise ConfigError(f"VarianceFactor.tail_confidence={self.tail_confidence!r} must be in (0, 1)")
+        bad = [i for i, u in enumerate(self.tail) if not 0.0 <= u < float("inf")]  # NaN fails both
+        if bad:
+            raise ConfigError(f"VarianceFactor.tail[{bad[0]}]={self.tail[bad[0]]!r} must be a finite number >= 0")
         if self.prior_dof + self.dof <= 0.0:
             raise ConfigError(f"VarianceFactor: prior_dof={self.prior_dof!r} + dof={self.dof!r} must be > 0")
 
@@ -832,7 +841,9 @@ def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
         try:
             factor = scipy.linalg.cho_factor(info[np.ix_(sc_r, sc_r)], lower=True)
         except np.linalg.LinAlgError:
-            raise SolverError(f"submap {submap.name!r}: information of the gated variables is not positive definite") from None
+            raise SolverError(
+                f"submap {submap.name!r}: information of the variables marginalised out is not positive definite"
+            ) from None
         i_kk = i_kk - i_kr @ scipy.linalg.cho_solve(factor, i_kr.T)
     i_kk = 0.5 * (i_kk + i_kk.T)
     new_info = sp.csr_matrix(i_kk) if sp.issparse(submap.info) else i_kk

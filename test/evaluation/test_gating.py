@@ -26,3 +26,14 @@ def test_a_stream_with_revisited_features_has_something_to_corrupt():
     world = make_world(2, 24, 20, np.random.default_rng(11))
     maps = noisy_local_maps(world, np.random.default_rng(12), steps_per_map=3)
     assert any_corruptible(maps, clean_pass(maps))
+
+
+def test_run_dataset_gives_such_a_stream_the_clean_check_only(monkeypatch, tmp_path, caplog):
+    import linear_slam_ros.evaluation.gating as gating
+
+    maps = [_forward_star(k) for k in range(8)]
+    monkeypatch.setattr(gating, "_load", lambda name, datasets_dir: maps)
+    out = gating.run_dataset("forward-stars", tmp_path, trials=5, seed=1, probability=gating.PROBABILITY)
+    assert out["trials"] == 0 and "end pose" in out["trials_skipped"]
+    assert out["clean_gated"] == 0 and out["n_submaps"] == 8 and "detected" not in out
+    assert "no corruption trial can be drawn" in caplog.text

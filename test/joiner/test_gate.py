@@ -239,3 +239,35 @@ def test_the_marginal_by_stack_entries_keeps_an_entry_frame_that_is_not_the_seam
     assert by_entries is not None and merged is not None
     np.testing.assert_allclose(by_entries.x, merged.x, atol=1e-9)
     np.testing.assert_allclose(by_entries.cov, merged.cov, atol=1e-9 * np.abs(merged.cov).max())
+
+
+@pytest.mark.parametrize("n_joined", [640, 743])
+def test_both_fast_marginals_equal_the_marginal_of_the_merged_map(read_benchmark, monkeypatch, n_joined):
+    """Intel at 640 submaps: the stack is [512, 128] and its top is in the frame of pose 576, which the
+    prefix holds (a forward loop closure) but does not end at: the prefix path must keep that pose
+    (it once did not). At 743 (seven entries) the entry path also marginalises out, after a join,
+    what no later entry needs (the speed-up); both equal the marginal of the merged map itself."""
+    import linear_slam_ros.joining.gate as gate_module
+    from linear_slam_ros.core.local_map import pose_key
+    from linear_slam_ros.joining.divide_conquer import resolve
+    from linear_slam_ros.joining.gate import Marginal, PrefixCache, online_dc_marginal, online_dc_marginal_by_entries
+
+    maps = read_benchmark("Intel").maps
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:n_joined], start=1):
+        j.offer(m, seq)
+    stack = j.state.joined.stack
+    if n_joined == 640:
+        prefix, top = (resolve(entry) for entry in stack)
+        assert top.frame_id != prefix.end_id and prefix.has_pose(top.frame_id)
+    keys = np.concatenate([maps[n_joined].keys, [pose_key(maps[n_joined].frame_id)]])
+    truth = Marginal.of_map(PrefixCache().merged(stack), keys)
+    reduced: list[int] = []
+    real = gate_module.marginalise_out
+    monkeypatch.setattr(gate_module, "marginalise_out", lambda m, idx: reduced.append(len(idx)) or real(m, idx))
+    for fast in (online_dc_marginal(j.state.joined, keys), online_dc_marginal_by_entries(j.state.joined, keys)):
+        assert fast is not None and truth is not None
+        assert fast.keys.tolist() == truth.keys.tolist() and fast.frame_id == truth.frame_id
+        np.testing.assert_allclose(fast.x, truth.x, atol=1e-9)
+        np.testing.assert_allclose(fast.cov, truth.cov, atol=1e-9 * np.abs(truth.cov).max())
+    assert (sum(reduced) > 0) == (n_joined == 743)  # seven entries: variables done with are dropped on the way

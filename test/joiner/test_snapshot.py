@@ -140,6 +140,33 @@ def test_a_version_3_or_4_variance_factor_drops_its_prior_submaps(maps, tmp_path
     assert "prior_submaps is not used" in caplog.text
 
 
+def _with_variance_fields(j, edit, version):
+    """The arrays of ``j``'s state file with its variance factor's fields edited, re-hashed as ``version``."""
+    arrays = encode_state(j.save())
+    header = json.loads(bytes(arrays["header"]).decode())
+    edit(header["tree"]["fields"]["state"]["fields"]["variance"]["fields"])
+    header["version"] = version
+    body = {k: v for k, v in arrays.items() if k != "header"}
+    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    return arrays
+
+
+def test_a_current_file_naming_prior_submaps_or_a_bad_tail_is_refused(maps):
+    j = Joiner("online-dc", gate_probability=0.99999999)
+    for seq, m in enumerate(maps[:5], start=1):
+        j.offer(m, seq)
+    arrays = _with_variance_fields(j, lambda f: f.update(prior_submaps=20), FORMAT_VERSION)
+    with pytest.raises(SnapshotError, match="malformed state .*unexpected keyword argument 'prior_submaps'"):
+        decode_state(arrays)
+
+    def negative_tail(fields):  # NaN and infinity cannot pass the header's JSON; a negative u can
+        fields["tail"]["__tuple__"][0] = -1.0
+
+    with pytest.raises(SnapshotError, match=r"malformed state .*VarianceFactor.tail\[0\]=-1.0 must be a finite number"):
+        decode_state(_with_variance_fields(j, negative_tail, FORMAT_VERSION))
+
+
 def test_fortran_ordered_covariance_keeps_its_order(maps):
     j = Joiner("sequential")
     for seq, m in enumerate(maps[:3], start=1):

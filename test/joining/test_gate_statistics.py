@@ -114,10 +114,21 @@ def test_tail_order_statistic_is_the_binomial_bound():
     assert tail_order_statistic(10, 0.5, 0.9) == 8  # P(Bin(10, 1/2) <= 7) = 0.945, <= 6: 0.828
 
 
+@pytest.mark.parametrize(("quantile", "confidence", "match"), [
+    (1.0, 0.99, r"quantile=1.0 must be in \(0, 1\)"), (0.95, 0.0, r"confidence=0.0 must be in \(0, 1\)"),
+    (float("nan"), 0.99, r"quantile=nan must be in \(0, 1\)"),
+])
+def test_tail_order_statistic_refuses_probabilities_outside_zero_one(quantile, confidence, match):
+    with pytest.raises(ConfigError, match=match):
+        tail_order_statistic(100, quantile, confidence)
+
+
 @pytest.mark.parametrize(("field", "value", "match"), [
     ("nis", -1.0, r"VarianceFactor.nis=-1.0 must be"), ("dof", float("nan"), r"VarianceFactor.dof=nan must be"),
     ("prior_dof", -2.0, r"VarianceFactor.prior_dof=-2.0 must be"),
     ("tail_confidence", 1.0, r"VarianceFactor.tail_confidence=1.0 must be in \(0, 1\)"),
+    ("tail", (0.5, float("nan")), r"VarianceFactor.tail\[1\]=nan must be a finite number >= 0"),
+    ("tail", (-0.1,), r"VarianceFactor.tail\[0\]=-0.1 must be a finite number >= 0"),
 ])
 def test_variance_factor_errors_name_the_value(field, value, match):
     with pytest.raises(ConfigError, match=match):

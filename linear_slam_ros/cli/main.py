@@ -35,6 +35,7 @@ from linear_slam_ros.joiner.robots import qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, FoldStrategy, JoinMethod, MapType
 from linear_slam_ros.joining.islands import maps_within
+from linear_slam_ros.joining.reinit import Reinitialisation, as_joined
 from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps, star_local_maps
 from linear_slam_ros.pose_graph.g2o import read_g2o, write_g2o
 from linear_slam_ros.pose_graph.lago import lago
@@ -218,6 +219,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
             "cannot gate (use 'online-dc' or 'sequential' with map type 'as-is')"
         )
     gated: list[dict[str, object]] = []
+    reinitialised: list[Reinitialisation] = []
     formats = list(args.format)
     _check_formats(formats, config.map_type)
     sources = read_sources(args.dataset, args.kind, args.robots)
@@ -231,7 +233,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
             run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
-                                    sources.seqs if sources.needs_joiner else None, sources.robots)
+                                    sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
         islands = {"n_islands": len(summary), "island_sizes": sorted((i.n_submaps for i in summary), reverse=True)}
@@ -247,14 +249,18 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     method = config.mode
     if run is None:
         run = join_dataset(dataset, method)
-    covered = maps_within(run.result, dataset.maps) if islands["n_islands"] != 1 else list(dataset.maps)
+    seen = as_joined(dataset.maps, reinitialised, sources.seqs if sources.needs_joiner else None,  # as the gate renamed them
+                     sources.robots if sources.needs_joiner else None)
+    covered = maps_within(run.result, seen) if islands["n_islands"] != 1 else seen
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin, pose_formats)
         if "g2o" in formats:
             _write_g2o(args.out, sources.path, dataset, in_origin)
         report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands}
         if gate is not None:
-            report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated)})
+            report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
+                           "reinitialised": [r.as_dict() for r in reinitialised],
+                           "n_reinitialised": len(reinitialised)})
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,

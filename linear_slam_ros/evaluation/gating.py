@@ -31,7 +31,7 @@ import logging
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -41,12 +41,13 @@ import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.core.local_map import POSE, LocalMap, pose_key
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, pose_key
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.io.datasets import read_dataset
-from linear_slam_ros.joiner.joiner import JoinerState, global_result, join_step, new_state
+from linear_slam_ros.joiner.joiner import JoinerState, gate_step, global_result, join_step, new_state
 from linear_slam_ros.joiner.strategy import JoinMethod
-from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap, marginalise_out, online_dc_holds
+from linear_slam_ros.joining.gate import GateResult, VarianceFactor, marginalise_out
+from linear_slam_ros.joining.reinit import Reinitialisation, as_joined
 
 logger = logging.getLogger(__name__)
 
@@ -60,11 +61,7 @@ PROBABILITIES = (0.9999, 0.999999, 0.99999999, 1.0 - 1e-12)
 
 def gate(state: JoinerState, submap: LocalMap, probability: float, variance: VarianceFactor) -> GateResult:
     """The joiner's gate (:func:`~linear_slam_ros.joiner.joiner.gate_step`) with the stream's variance factor."""
-    if state.n_joined == 0:
-        return GateResult(probability, 0.0, 0, float("inf"), submap=submap, variance_factor=variance.value)
-    strategy, joined = state.strategy, state.joined
-    return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability, variance,
-                       holds=lambda keys: online_dc_holds(joined, keys))
+    return gate_step(replace(state, variance=variance), submap, probability)
 
 
 @dataclass(frozen=True)
@@ -96,6 +93,12 @@ class CleanPass:
     def dof(self) -> npt.NDArray[np.int64]:
         """Common scalars of each submap."""
         return np.array([r.dof for r in self.results], dtype=np.int64)
+
+    @property
+    def reinitialisations(self) -> list[Reinitialisation]:
+        """The features the gate re-initialised on the way (:mod:`~linear_slam_ros.joining.reinit`)."""
+        return [Reinitialisation(k + 1, "", front, landmark) for k, r in enumerate(self.results)
+                for front, landmark in r.reinitialised]
 
     @property
     def gated(self) -> list[int]:
@@ -138,6 +141,7 @@ def clean_pass(maps: Sequence[LocalMap], probability: float = PROBABILITY, floor
         variance = variance.updated(result)
         if result.submap is not None:
             state = join_step(state, result.submap, seq)
+            state = replace(state, relabels=state.relabels.after(result))
         plain = join_step(plain, m, seq)
         if seq % 250 == 0:
             logger.info("gating: clean pass %d/%d, gate ms p50 %.1f, %d gated", seq, len(maps),
@@ -160,7 +164,7 @@ def run_rest(state: JoinerState, maps: Sequence[LocalMap], start: int) -> LocalM
     """
     for k in range(start, len(maps)):
         try:
-            state = join_step(state, maps[k], k + 1)
+            state = join_step(state, state.relabels.apply(maps[k]), k + 1)
         except LinearSlamError as exc:
             logger.warning("gating: %s not joined: %s", maps[k].name, exc)
     return _in_first_frame(state)
@@ -202,7 +206,8 @@ def _common_vars(state: JoinerState, submap: LocalMap) -> list[int]:
     """Variables of ``submap`` the map holds, but its end pose (the chain goes on from it: not a loop closure)."""
     known = global_keys(state)
     end = pose_key(submap.end_id) if submap.end_id is not None else None
-    return [i for i, k in enumerate(submap.keys.tolist()) if k in known and k != end]
+    renamed = state.relabels.apply(submap)  # same variables in the same order, re-initialised features renamed
+    return [i for i, k in enumerate(renamed.keys.tolist()) if k in known and k != end]
 
 
 def global_keys(state: JoinerState) -> set[int]:
@@ -248,17 +253,24 @@ def _rerun_error(
     state: JoinerState, maps: Sequence[LocalMap], k: int, ref_result: GateResult, result: GateResult
 ) -> float:
     """RMS (m) between the stream that got the gated corrupted submap ``k`` and the clean stream without ``v``."""
-    ref = run_rest(join_step(state, ref_result.submap, k + 1) if ref_result.submap is not None else state, maps, k + 1)
-    after = join_step(state, result.submap, k + 1) if result.submap is not None else state
-    got = run_rest(after, maps, k + 1)
+    ref = run_rest(_joined(state, ref_result, k), maps, k + 1)
+    got = run_rest(_joined(state, result, k), maps, k + 1)
     return position_rms(got, ref)
+
+
+def _joined(state: JoinerState, result: GateResult, k: int) -> JoinerState:
+    """``state`` after joining what the gate let through of submap ``k`` (relabels recorded)."""
+    if result.submap is None:
+        return state
+    joined = join_step(state, result.submap, k + 1)
+    return replace(joined, relabels=joined.relabels.after(result))
 
 
 def clean_check(name: str, maps: Sequence[LocalMap], clean: CleanPass, seconds: float) -> dict[str, Any]:
     """Figures of the clean stream: submaps gated, χ² gated and ungated, per-probability fractions, gate time."""
     tested = clean.dof > 0
     gated = clean.gated
-    chi2_gated = chi2(clean.final, maps)
+    chi2_gated = chi2(clean.final, as_joined(maps, clean.reinitialisations))  # each sighting under the id it joined
     chi2_plain = chi2(clean.plain_final, maps)
     identical = clean.final.keys.tolist() == clean.plain_final.keys.tolist() and bool(
         np.array_equal(clean.final.x, clean.plain_final.x))
@@ -266,6 +278,7 @@ def clean_check(name: str, maps: Sequence[LocalMap], clean: CleanPass, seconds: 
     return {
         "dataset": name, "n_submaps": len(maps), "n_tested": int(tested.sum()),
         "clean_gated": len(gated), "clean_gated_fraction": len(gated) / len(maps),
+        "clean_reinitialised": [r.as_dict() for r in clean.reinitialisations],
         "clean_gated_decisions": [
             {"submap": k + 1, "nis": clean.results[k].nis, "dof": clean.results[k].dof,
              "threshold": clean.results[k].threshold, "variance_factor": clean.results[k].variance_factor,
@@ -314,7 +327,7 @@ def run_dataset(
         state, variance = clean.states[k], clean.variances[k]
         result = gate(state, bad, probability, variance)
         key = (int(bad.ids[v]), int(bad.kinds[v]))
-        hit = key in {(g.var_id, g.kind) for g in result.split}
+        hit = key in {(state.relabels.front_id(g.var_id) if g.kind == FEATURE else g.var_id, g.kind) for g in result.split}
         detected += hit
         reference_k = marginalise_out(maps[k], [v])
         ref_result = gate(state, reference_k, probability, variance)
@@ -373,16 +386,18 @@ def write_outputs(results: list[dict[str, Any]], out: Path, command: str) -> Non
         )
     lines += [
         "", "## Clean data", "",
-        "| dataset | submaps (tested) | gated | χ² gated / ungated | map = ungated | final variance factor "
+        "| dataset | submaps (tested) | gated | features re-initialised | χ² gated / ungated | map = ungated "
+        "| final variance factor "
         "| Σ NIS / Σ dof | median, max NIS/dof | would gate at " + " / ".join(f"{p}" for p in PROBABILITIES)
         + " | gate ms p50 / p99 / max |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         fails = " / ".join(f"{r['clean_fails_at'][f'{p}']}" for p in PROBABILITIES)
         lines.append(
             f"| {r['dataset']} | {r['n_submaps']} ({r['n_tested']}) | {r['clean_gated']} "
-            f"({100 * r['clean_gated_fraction']:.2f}%) | {r['chi2_gated']:.2f} / {r['chi2_plain']:.2f} | "
+            f"({100 * r['clean_gated_fraction']:.2f}%) | {len(r.get('clean_reinitialised', []))} | "
+            f"{r['chi2_gated']:.2f} / {r['chi2_plain']:.2f} | "
             f"{'yes' if r['map_identical_to_ungated'] else 'no'} | {r['variance_factor_final']:.2f} | "
             f"{r['clean_nis_sum']:.0f} / {r['clean_dof_sum']} | {r['clean_nis_over_dof_median']:.2f}, "
             f"{r['clean_nis_over_dof_max']:.1f} | {fails} | "

@@ -20,6 +20,7 @@ from linear_slam_ros.feature_only.refine import feature_residuals, feature_rmse,
 from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, global_result
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
+from linear_slam_ros.joining.reinit import Reinitialisation
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,7 @@ def run_joiner(
     gated: list[dict[str, Any]] | None = None,
     seqs: Sequence[int] | None = None,
     robots: Sequence[str] | None = None,
+    reinitialised: list[Reinitialisation] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
@@ -95,7 +97,8 @@ def run_joiner(
     that are skipped are lost submaps, and the streams are complete: every gap is skipped at the
     end (:meth:`Joiner.flush`) and the maps after it start islands. Timing is per submap. With
     ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
-    ``gated`` (:meth:`GateRecord.as_dict`) and are not errors.
+    ``gated`` (:meth:`GateRecord.as_dict`) and are not errors, and the features it re-initialised
+    to ``reinitialised``.
 
     Returns:
         The timed run and the joiner's final saved value (for ``--save-state``).
@@ -130,6 +133,8 @@ def run_joiner(
     run = JoinRun(strategy.method, result, seconds, tuple(joiner.join_seconds), len(maps), PER_SUBMAP)
     if gated is not None:
         gated.extend(g.as_dict() for g in joiner.gated)
+    if reinitialised is not None:
+        reinitialised.extend(joiner.reinitialised)
     return run, joiner.save()
 
 

@@ -40,6 +40,7 @@ from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.chain import compose
 from linear_slam_ros.joining.divide_conquer import OnlineDCState
 from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap, online_dc_holds
+from linear_slam_ros.joining.reinit import Reinitialisation, Relabels
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +63,8 @@ class JoinerState:
         variance: the χ² gate's variance of unit weight of the stream (what the gate let through so
             far; :class:`~linear_slam_ros.joining.gate.VarianceFactor`): the gate's thresholds are
             scaled by it. One for the whole map, whichever robot a submap comes from.
+        relabels: the features the gate re-initialised (their front-end ids now name new
+            landmarks) and those it suspects (:class:`~linear_slam_ros.joining.reinit.Relabels`).
     """
 
     method: JoinMethod
@@ -72,6 +75,7 @@ class JoinerState:
     defer_above: int | None = None
     dim: int | None = None
     variance: VarianceFactor = field(default_factory=VarianceFactor)
+    relabels: Relabels = field(default_factory=Relabels)
 
     @property
     def strategy(self) -> AnyStrategy:
@@ -215,17 +219,24 @@ def gate_step(state: JoinerState, submap: LocalMap, probability: float, robot: s
     (:func:`~linear_slam_ros.joining.gate.gate_submap`). The caller adds what the gate let through to
     ``state.variance`` once the submap is joined (:meth:`Joiner.offer` does). Strategies that cannot gate
     (``marginal`` returns ``None``) pass everything. The map compared with is the chain the submap
-    continues (:func:`gate_chain`); a submap that starts an island passes.
+    continues (:func:`gate_chain`); a submap that starts an island passes. Features the gate
+    re-initialised are renamed first, and a suspect feature that fails again is re-initialised
+    (``state.relabels``, :mod:`~linear_slam_ros.joining.reinit`); the caller records that with
+    :meth:`Relabels.after` once the submap is joined.
 
     Raises:
         SolverError: a covariance is not positive definite.
+        InvalidMapError: the submap holds a feature id reserved for re-initialised landmarks.
     """
+    relabels = state.relabels
+    submap = relabels.apply(submap)
     joined = gate_chain(state, submap, robot) if state.n_joined else None
     if joined is None:  # the first submap, or the first of an island: nothing to compare with
         return GateResult(probability, 0.0, 0, float("inf"), submap=submap, variance_factor=state.variance.value)
     strategy = state.strategy
     holds = (lambda keys: online_dc_holds(joined, keys)) if isinstance(joined, OnlineDCState) else None
-    return gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability, state.variance, holds)
+    result = gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability, state.variance, holds)
+    return relabels.reinitialise(result, submap)
 
 
 @dataclass(frozen=True)
@@ -400,6 +411,7 @@ class Joiner:
             gated variables counts as joined and under ``gated``. A submap left with nothing uses up
             its sequence number and leaves the map unchanged.
         gated: every gate decision that kept something out of the map, in order.
+        reinitialised: each feature the gate re-initialised (:mod:`~linear_slam_ros.joining.reinit`), in order.
         state: the current state (:meth:`restore` a saved one).
         rejected: count of rejected submaps by reason.
         join_seconds: wall time of each successful join.
@@ -417,6 +429,7 @@ class Joiner:
     gate_probability: float | None = None
     state: JoinerState = field(init=False)
     gated: list[GateRecord] = field(default_factory=list)
+    reinitialised: list[Reinitialisation] = field(default_factory=list)
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
@@ -449,6 +462,7 @@ class Joiner:
         self.rejected.clear()
         self.join_seconds.clear()
         self.gated.clear()
+        self.reinitialised.clear()
         self._pending.clear()
         self._pending_bytes = 0
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
@@ -635,7 +649,8 @@ class Joiner:
                 submap = result.submap
             self.state = join_step(self.state, submap, seq, robot)
             if result is not None:  # what the gate let through is now in the map: it counts in s²
-                self.state = replace(self.state, variance=self.state.variance.updated(result))
+                self.state = replace(self.state, variance=self.state.variance.updated(result),
+                                     relabels=self.state.relabels.after(result))
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"{self._who(seq, robot)} rejected: {exc}")
             return []
@@ -650,6 +665,10 @@ class Joiner:
         """Run the gate; its ``submap`` is what to join (``None``: nothing left, its number used up)."""
         assert self.gate_probability is not None
         result = gate_step(self.state, submap, self.gate_probability, robot)
+        for front, landmark in result.reinitialised:
+            self.reinitialised.append(Reinitialisation(seq, robot, front, landmark))
+            logger.warning("%s: feature %d failed the gate again after a sighting of it was split off: re-initialised "
+                           "as landmark %d (its later sightings join that one)", self._who(seq, robot), front, landmark)
         if result.passed:
             return result
         variables = result.split if not result.rejected else result.worst

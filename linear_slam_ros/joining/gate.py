@@ -610,6 +610,9 @@ class GateResult:
         variable_threshold: the per-variable test's threshold for the worst variable's dof.
         n_common: number of common variables (the Šidák exponent of the per-variable test).
         variables: every common variable's conditional NIS, as first tested (``worst`` is their top 5).
+        reinitialised: ``(front-end id, new landmark id)`` of each feature whose sighting failed
+            again after an earlier one was split off: joined as a new landmark instead of split
+            off (:mod:`~linear_slam_ros.joining.reinit`; not in ``split``).
     """
 
     probability: float
@@ -626,10 +629,11 @@ class GateResult:
     variable_threshold: float = float("inf")
     n_common: int = 0
     variables: tuple[VariableNis, ...] = ()
+    reinitialised: tuple[tuple[int, int], ...] = ()
 
     @property
     def passed(self) -> bool:
-        """Whether the submap passed as it came (nothing split off, not rejected)."""
+        """Whether nothing of the submap was kept out (nothing split off, not rejected; re-initialised features are joined)."""
         return not self.rejected and not self.split
 
     def message(self, label: str) -> str:

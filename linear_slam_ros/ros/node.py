@@ -765,6 +765,7 @@ class JoinerNode(Node):
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))
         status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
         status.values.append(KeyValue(key="n_gated", value=str(len(self.joiner.gated))))
+        status.values.append(KeyValue(key="n_reinitialised", value=str(len(self.joiner.reinitialised))))
         if self.joiner.gated:
             last = self.joiner.gated[-1]
             status.values.append(KeyValue(

@@ -101,50 +101,11 @@ def test_the_gate_variance_factor_round_trips_and_the_restored_gate_decides_alik
     assert j.state.variance == other.state.variance
 
 
-def test_a_version_2_file_is_read_with_a_fresh_variance_factor(maps, tmp_path, caplog):
-    j = Joiner("online-dc", gate_probability=0.99999999)
-    for seq, m in enumerate(maps[:5], start=1):
-        j.offer(m, seq)
+def _rewritten(j, edit, version):
+    """The arrays of ``j``'s state file with its ``JoinerState`` fields edited by ``edit``, re-hashed as ``version``."""
     arrays = encode_state(j.save())
     header = json.loads(bytes(arrays["header"]).decode())
-    del header["tree"]["fields"]["state"]["fields"]["variance"]  # what version 2 wrote
-    header["version"] = 2
-    body = {k: v for k, v in arrays.items() if k != "header"}
-    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    old = tmp_path / "v2.npz"
-    _rewrite(old, arrays)
-    back = read_snapshot(old)
-    assert back.state.variance == VarianceFactor() and "variance factor starts afresh" in caplog.text
-    _same(replace(back.state, variance=j.state.variance), j.state)
-
-
-@pytest.mark.parametrize("version", [3, 4])
-def test_a_version_3_or_4_variance_factor_drops_its_prior_submaps(maps, tmp_path, caplog, version):
-    j = Joiner("online-dc", gate_probability=0.99999999)
-    for seq, m in enumerate(maps[:5], start=1):
-        j.offer(m, seq)
-    arrays = encode_state(j.save())
-    header = json.loads(bytes(arrays["header"]).decode())
-    fields = header["tree"]["fields"]["state"]["fields"]["variance"]["fields"]
-    del fields["tail_confidence"]
-    fields["prior_submaps"] = 20  # what versions 3 and 4 wrote
-    header["version"] = version
-    body = {k: v for k, v in arrays.items() if k != "header"}
-    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    old = tmp_path / f"v{version}.npz"
-    _rewrite(old, arrays)
-    back = read_snapshot(old)
-    assert back.state.variance == j.state.variance and len(back.state.variance.tail) > 0
-    assert "prior_submaps is not used" in caplog.text
-
-
-def _with_variance_fields(j, edit, version):
-    """The arrays of ``j``'s state file with its variance factor's fields edited, re-hashed as ``version``."""
-    arrays = encode_state(j.save())
-    header = json.loads(bytes(arrays["header"]).decode())
-    edit(header["tree"]["fields"]["state"]["fields"]["variance"]["fields"])
+    edit(header["tree"]["fields"]["state"]["fields"])
     header["version"] = version
     body = {k: v for k, v in arrays.items() if k != "header"}
     header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
@@ -152,19 +113,49 @@ def _with_variance_fields(j, edit, version):
     return arrays
 
 
-def test_a_current_file_naming_prior_submaps_or_a_bad_tail_is_refused(maps):
+def _gated_joiner(maps):
     j = Joiner("online-dc", gate_probability=0.99999999)
     for seq, m in enumerate(maps[:5], start=1):
         j.offer(m, seq)
-    arrays = _with_variance_fields(j, lambda f: f.update(prior_submaps=20), FORMAT_VERSION)
+    return j
+
+
+def test_a_version_2_file_is_read_with_a_fresh_variance_factor(maps, tmp_path, caplog):
+    j = _gated_joiner(maps)
+    old = tmp_path / "v2.npz"
+    _rewrite(old, _rewritten(j, lambda fields: fields.pop("variance"), 2))  # what version 2 wrote
+    back = read_snapshot(old)
+    assert back.state.variance == VarianceFactor() and "variance factor starts afresh" in caplog.text
+    _same(replace(back.state, variance=j.state.variance), j.state)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_version_3_or_4_variance_factor_drops_its_prior_submaps(maps, tmp_path, caplog, version):
+    j = _gated_joiner(maps)
+
+    def as_before_5(fields):  # what versions 3 and 4 wrote
+        variance = fields["variance"]["fields"]
+        del variance["tail_confidence"]
+        variance["prior_submaps"] = 20
+
+    old = tmp_path / f"v{version}.npz"
+    _rewrite(old, _rewritten(j, as_before_5, version))
+    back = read_snapshot(old)
+    assert back.state.variance == j.state.variance and len(back.state.variance.tail) > 0
+    assert "prior_submaps is not used" in caplog.text
+
+
+def test_a_current_file_naming_prior_submaps_or_a_bad_tail_is_refused(maps):
+    j = _gated_joiner(maps)
+    arrays = _rewritten(j, lambda fields: fields["variance"]["fields"].update(prior_submaps=20), FORMAT_VERSION)
     with pytest.raises(SnapshotError, match="malformed state .*unexpected keyword argument 'prior_submaps'"):
         decode_state(arrays)
 
     def negative_tail(fields):  # NaN and infinity cannot pass the header's JSON; a negative u can
-        fields["tail"]["__tuple__"][0] = -1.0
+        fields["variance"]["fields"]["tail"]["__tuple__"][0] = -1.0
 
     with pytest.raises(SnapshotError, match=r"malformed state .*VarianceFactor.tail\[0\]=-1.0 must be a finite number"):
-        decode_state(_with_variance_fields(j, negative_tail, FORMAT_VERSION))
+        decode_state(_rewritten(j, negative_tail, FORMAT_VERSION))
 
 
 def test_fortran_ordered_covariance_keeps_its_order(maps):
@@ -432,16 +423,7 @@ def test_a_header_nested_too_deep_is_refused_with_a_snapshot_error():
 def test_a_version_5_file_is_read_with_no_feature_re_initialised(maps, caplog):
     from linear_slam_ros.joining.reinit import Relabels
 
-    j = Joiner("online-dc", gate_probability=0.99999999)
-    for seq, m in enumerate(maps[:5], start=1):
-        j.offer(m, seq)
-    arrays = encode_state(j.save())
-    header = json.loads(bytes(arrays["header"]).decode())
-    del header["tree"]["fields"]["state"]["fields"]["relabels"]  # what version 5 wrote
-    header["version"] = 5
-    body = {k: v for k, v in arrays.items() if k != "header"}
-    header["sha256"] = _checksum(json.dumps(header["tree"], sort_keys=True, allow_nan=False).encode(), body)
-    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
-    back = decode_state(arrays)
+    j = _gated_joiner(maps)
+    back = decode_state(_rewritten(j, lambda fields: fields.pop("relabels"), 5))  # what version 5 wrote
     assert back.state.relabels == Relabels() and back.state.variance == j.state.variance
     assert "format version 5" not in caplog.text  # nothing is lost: no warning

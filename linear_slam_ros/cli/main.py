@@ -220,6 +220,8 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         )
     gated: list[dict[str, object]] = []
     reinitialised: list[Reinitialisation] = []
+    joined_at: list[int | None] = []
+    before = None
     formats = list(args.format)
     _check_formats(formats, config.map_type)
     sources = read_sources(args.dataset, args.kind, args.robots)
@@ -231,9 +233,11 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
     if args.initial_state is not None or args.save_state is not None or gate is not None or sources.needs_joiner:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
+        before = initial.state.relabels if initial is not None else None
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
             run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
-                                    sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised)
+                                    sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised,
+                                    joined_at)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
         islands = {"n_islands": len(summary), "island_sizes": sorted((i.n_submaps for i in summary), reverse=True)}
@@ -249,8 +253,8 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     method = config.mode
     if run is None:
         run = join_dataset(dataset, method)
-    seen = as_joined(dataset.maps, reinitialised, sources.seqs if sources.needs_joiner else None,  # as the gate renamed them
-                     sources.robots if sources.needs_joiner else None)
+    # each map under the feature ids it was joined with (features the gate re-initialised renamed)
+    seen = as_joined(dataset.maps, reinitialised, joined_at, before) if joined_at else list(dataset.maps)
     covered = maps_within(run.result, seen) if islands["n_islands"] != 1 else seen
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin, pose_formats)

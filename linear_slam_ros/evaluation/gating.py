@@ -97,8 +97,13 @@ class CleanPass:
     @property
     def reinitialisations(self) -> list[Reinitialisation]:
         """The features the gate re-initialised on the way (:mod:`~linear_slam_ros.joining.reinit`)."""
-        return [Reinitialisation(k + 1, "", front, landmark) for k, r in enumerate(self.results)
-                for front, landmark in r.reinitialised]
+        return [Reinitialisation(k + 1, "", front, landmark, self.states[k].n_joined + 1)
+                for k, r in enumerate(self.results) for front, landmark in r.reinitialised]
+
+    @property
+    def joined_at(self) -> list[int | None]:
+        """Each submap's place in the join order (``None``: nothing of it was joined)."""
+        return [s.n_joined + 1 if r.submap is not None else None for s, r in zip(self.states, self.results, strict=True)]
 
     @property
     def gated(self) -> list[int]:
@@ -109,7 +114,8 @@ class CleanPass:
         """Which submaps the gate would touch at ``probability`` (evaluated on the recorded NIS, not applied).
 
         Uses each submap's total NIS and its worst variables (:attr:`GateResult.worst`) with the
-        variance factor of that point of the stream; exact for the probability the stream ran at.
+        variance factor of that point of the stream; at the probability the stream ran at, these
+        are the submaps gated plus those whose failing features were re-initialised instead.
         """
         out = []
         for r, v in zip(self.results, self.variances, strict=True):
@@ -141,7 +147,7 @@ def clean_pass(maps: Sequence[LocalMap], probability: float = PROBABILITY, floor
         variance = variance.updated(result)
         if result.submap is not None:
             state = join_step(state, result.submap, seq)
-            state = replace(state, relabels=state.relabels.after(result))
+        state = replace(state, relabels=state.relabels.after(result))
         plain = join_step(plain, m, seq)
         if seq % 250 == 0:
             logger.info("gating: clean pass %d/%d, gate ms p50 %.1f, %d gated", seq, len(maps),
@@ -260,9 +266,7 @@ def _rerun_error(
 
 def _joined(state: JoinerState, result: GateResult, k: int) -> JoinerState:
     """``state`` after joining what the gate let through of submap ``k`` (relabels recorded)."""
-    if result.submap is None:
-        return state
-    joined = join_step(state, result.submap, k + 1)
+    joined = join_step(state, result.submap, k + 1) if result.submap is not None else state
     return replace(joined, relabels=joined.relabels.after(result))
 
 
@@ -270,7 +274,7 @@ def clean_check(name: str, maps: Sequence[LocalMap], clean: CleanPass, seconds: 
     """Figures of the clean stream: submaps gated, χ² gated and ungated, per-probability fractions, gate time."""
     tested = clean.dof > 0
     gated = clean.gated
-    chi2_gated = chi2(clean.final, as_joined(maps, clean.reinitialisations))  # each sighting under the id it joined
+    chi2_gated = chi2(clean.final, as_joined(maps, clean.reinitialisations, clean.joined_at))  # under the ids joined
     chi2_plain = chi2(clean.plain_final, maps)
     identical = clean.final.keys.tolist() == clean.plain_final.keys.tolist() and bool(
         np.array_equal(clean.final.x, clean.plain_final.x))

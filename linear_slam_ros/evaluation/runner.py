@@ -88,6 +88,7 @@ def run_joiner(
     seqs: Sequence[int] | None = None,
     robots: Sequence[str] | None = None,
     reinitialised: list[Reinitialisation] | None = None,
+    joined_at: list[int | None] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
@@ -98,7 +99,8 @@ def run_joiner(
     end (:meth:`Joiner.flush`) and the maps after it start islands. Timing is per submap. With
     ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
     ``gated`` (:meth:`GateRecord.as_dict`) and are not errors, and the features it re-initialised
-    to ``reinitialised``.
+    to ``reinitialised``; ``joined_at`` receives each map's place in the join order (``None``: not
+    joined), to score the result with :func:`~linear_slam_ros.joining.reinit.as_joined`.
 
     Returns:
         The timed run and the joiner's final saved value (for ``--save-state``).
@@ -114,6 +116,8 @@ def run_joiner(
     joiner.on_reject = lambda reason, message: None if reason in ("gated", "gap") else reasons.append(message)
     if initial is not None:
         joiner.restore(initial)
+    order: dict[tuple[str, int], int] = {}
+    joiner.on_join = lambda robot, seq: order.__setitem__((robot, seq), joiner.state.n_joined)
     first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
     strategy = joiner.state.strategy
     tune_allocator(strategy.mmap_threshold)
@@ -135,6 +139,9 @@ def run_joiner(
         gated.extend(g.as_dict() for g in joiner.gated)
     if reinitialised is not None:
         reinitialised.extend(joiner.reinitialised)
+    if joined_at is not None:
+        joined_at.extend(order.get((robots[i] if robots is not None else "", seqs[i] if seqs is not None else first_seq + i))
+                         for i in range(len(maps)))
     return run, joiner.save()
 
 

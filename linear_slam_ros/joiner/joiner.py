@@ -416,6 +416,8 @@ class Joiner:
         rejected: count of rejected submaps by reason.
         join_seconds: wall time of each successful join.
         n_skipped: submaps skipped as already handled.
+        on_reject: called with ``(reason, message)`` of each rejection.
+        on_join: called with ``(robot, seq)`` after each submap is joined, in join order.
     """
 
     mode: JoinMethod
@@ -433,6 +435,7 @@ class Joiner:
     rejected: collections.Counter[str] = field(default_factory=collections.Counter)
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
+    on_join: Callable[[str, int], None] | None = None
     n_skipped: int = 0
     _pending: collections.defaultdict[str, dict[int, LocalMap]] = field(
         default_factory=lambda: collections.defaultdict(dict)
@@ -643,14 +646,21 @@ class Joiner:
         try:
             result = None
             if self.gate_probability:
-                result = self._gate(submap, seq, robot)
-                if result.submap is None:
+                result = gate_step(self.state, submap, self.gate_probability, robot)
+                if result.submap is None:  # nothing left to join: its number is used, the map unchanged
+                    self._record_gate(result, submap, seq, robot)
+                    self.state = replace(self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq),
+                                         relabels=self.state.relabels.after(result))
+                    self._progress_at[robot] = self.clock()
                     return []
-                submap = result.submap
-            self.state = join_step(self.state, submap, seq, robot)
+                joined = result.submap
+            else:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids
+                joined = self.state.relabels.apply(submap) if self.state.relabels.aliases else submap
+            self.state = join_step(self.state, joined, seq, robot)
             if result is not None:  # what the gate let through is now in the map: it counts in s²
                 self.state = replace(self.state, variance=self.state.variance.updated(result),
                                      relabels=self.state.relabels.after(result))
+                self._record_gate(result, submap, seq, robot)
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"{self._who(seq, robot)} rejected: {exc}")
             return []
@@ -659,18 +669,18 @@ class Joiner:
             self.worker.submit(self.state.strategy.pending(chain.joined))
         self.join_seconds.append(time.perf_counter() - t0)
         self._progress_at[robot] = self.clock()
+        if self.on_join is not None:
+            self.on_join(robot, seq)
         return [seq]
 
-    def _gate(self, submap: LocalMap, seq: int, robot: str) -> GateResult:
-        """Run the gate; its ``submap`` is what to join (``None``: nothing left, its number used up)."""
-        assert self.gate_probability is not None
-        result = gate_step(self.state, submap, self.gate_probability, robot)
+    def _record_gate(self, result: GateResult, submap: LocalMap, seq: int, robot: str) -> None:
+        """Record and report what the gate did to a submap, once that is settled (joined, or nothing left to join)."""
         for front, landmark in result.reinitialised:
-            self.reinitialised.append(Reinitialisation(seq, robot, front, landmark))
+            self.reinitialised.append(Reinitialisation(seq, robot, front, landmark, self.state.n_joined))
             logger.warning("%s: feature %d failed the gate again after a sighting of it was split off: re-initialised "
                            "as landmark %d (its later sightings join that one)", self._who(seq, robot), front, landmark)
         if result.passed:
-            return result
+            return
         variables = result.split if not result.rejected else result.worst
         record = GateRecord(
             seq, submap.name, tuple(v.var_id for v in variables), tuple(v.kind for v in variables), result.nis,
@@ -678,10 +688,6 @@ class Joiner:
         )
         self.gated.append(record)
         self.reject("gated", result.message(self._who(seq, robot) + f" ({submap.name!r})"))
-        if result.submap is None:  # nothing left to join: its number is used, the map unchanged
-            self.state = self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq)
-            self._progress_at[robot] = self.clock()
-        return result
 
     def stats(self) -> dict[str, float]:
         """Return counts, join-latency figures (ms) and the number of islands for the global map message."""

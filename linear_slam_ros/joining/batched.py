@@ -17,7 +17,8 @@ block-diagonal information) and does each level as a handful of vectorised opera
 
 The tree is the same (``(1, 2), (3, 4), ...``, an odd last map moves up unchanged) and so is every
 linearisation point: the result equals the pair-by-pair divide and conquer up to round-off
-(tested to 1e-9 on the benchmark datasets).
+(tested to 1e-10 on small synthetic streams and 1e-8 on synthetic city and garage graphs; on the
+benchmark datasets the estimates differ by at most 4e-7 m, the round-off the deep tree amplifies).
 """
 
 from __future__ import annotations
@@ -137,11 +138,12 @@ class MapBatch:
     def find(self, maps: IntArray, keys: IntArray) -> IntArray:
         """Return the variable index of key ``keys[i]`` in map ``maps[i]`` (``-1``: not there)."""
         unique, order, sorted_codes = self._key_codes
-        rank = np.minimum(np.searchsorted(unique, keys), max(unique.size - 1, 0))
-        known = unique[rank] == keys if unique.size else np.zeros(keys.shape, dtype=bool)
+        if unique.size == 0:  # maps without variables hold nothing
+            return np.full(np.shape(keys), -1, dtype=np.int64)
+        rank = np.minimum(np.searchsorted(unique, keys), unique.size - 1)
         codes = maps * unique.size + rank
-        pos = np.minimum(np.searchsorted(sorted_codes, codes), max(sorted_codes.size - 1, 0))
-        found = known & (sorted_codes[pos] == codes) if sorted_codes.size else known
+        pos = np.minimum(np.searchsorted(sorted_codes, codes), sorted_codes.size - 1)
+        found = (unique[rank] == keys) & (sorted_codes[pos] == codes)
         return np.where(found, order[pos], -1)
 
     def information(self) -> sp.csr_matrix:
@@ -152,7 +154,8 @@ class MapBatch:
         return sp.csr_matrix(g.T) @ (self.info @ g)
 
     def map_at(self, j: int, name: str = GLOBAL_NAME) -> LocalMap:
-        """Return map ``j`` as a :class:`LocalMap` (dense information up to ``DENSE_MAX`` scalars, as the pairwise join)."""
+        """Return map ``j`` as a :class:`LocalMap` named ``name`` (dense information up to ``DENSE_MAX`` scalars, as the
+        pairwise join makes it)."""
         v0, v1 = int(self.var_ptr[j]), int(self.var_ptr[j + 1])
         s0 = int(self.offsets[v0]) if v0 < self.ids.size else int(self.x.size)
         s1 = s0 + int(self.sizes[v0:v1].sum())
@@ -384,10 +387,12 @@ def _share_frames(batch: MapBatch) -> MapBatch:
     second = first + 1
     f_a, f_b, seam = batch.frame_ids[first], batch.frame_ids[second], batch.end_ids[first]
     # which of the poses involved each map holds
-    holds_seam_b = batch.find(second, 2 * np.where(seam == NO_END, 0, seam) + POSE) >= 0
+    seam_key = 2 * np.where(seam == NO_END, 0, seam) + POSE
+    holds_seam_a = batch.find(first, seam_key) >= 0
+    holds_seam_b = batch.find(second, seam_key) >= 0
     holds_fa_b = batch.find(second, 2 * f_a + POSE) >= 0
     holds_fb_a = batch.find(first, 2 * f_b + POSE) >= 0
-    for g in np.flatnonzero(f_a != f_b).tolist():
+    for g in np.flatnonzero(f_a != f_b).tolist():  # in pair order: the first failing pair is named, as the tree does
         a, b = 2 * g, 2 * g + 1
         fa, fb, s = int(f_a[g]), int(f_b[g]), int(seam[g])
         if s != NO_END:
@@ -395,6 +400,11 @@ def _share_frames(batch: MapBatch) -> MapBatch:
                 raise FrameError(
                     f"map {batch.names[b]!r} (frame pose {fb}) does not hold pose {s}, the end pose of map "
                     f"{batch.names[a]!r} (frame pose {fa}): the maps share no frame"
+                )
+            if fa != s and not holds_seam_a[g]:
+                raise FrameError(
+                    f"cannot change map {batch.names[a]!r} (frame pose {fa}) to the frame of pose {s}: that pose "
+                    "is not in the map"
                 )
             if fa != s:
                 moves[a] = s
@@ -414,13 +424,7 @@ def _share_frames(batch: MapBatch) -> MapBatch:
     maps = np.fromiter(moves, dtype=np.int64, count=len(moves))
     poses = np.fromiter(moves.values(), dtype=np.int64, count=len(moves))
     slots = batch.find(maps, 2 * poses + POSE)
-    missing = np.flatnonzero(slots < 0)
-    if missing.size:
-        j, pose = int(maps[missing[0]]), int(poses[missing[0]])
-        raise FrameError(
-            f"cannot change map {batch.names[j]!r} (frame pose {int(batch.frame_ids[j])}) to the frame of "
-            f"pose {pose}: that pose is not in the map"
-        )
+    assert bool(np.all(slots >= 0)), "every move was checked above"
     return change_frames(batch, maps, slots)
 
 

@@ -649,7 +649,8 @@ class GateResult:
             return head + (f"; gated whole (more than {MAX_SPLIT_FRACTION:.0%} of its common variables fail): "
                            "every common variable split off, only its new variables joined")
         split = ", ".join(f"{'pose' if v.kind == POSE else 'feature'} {v.var_id}" for v in self.split)
-        return head + f"; split off {split} (NIS {self.nis_after:.2f} for {self.dof_after} dof after), rest joined"
+        renewed = "".join(f"; feature {front} re-initialised as landmark {new}" for front, new in self.reinitialised)
+        return head + f"; split off {split} (NIS {self.nis_after:.2f} for {self.dof_after} dof after), rest joined{renewed}"
 
 
 def chi2_threshold(probability: float, dof: int) -> float:

@@ -146,41 +146,41 @@ class Reinitialisation:
         robot: the robot whose stream it came in (``""``: the only one).
         feature: the front-end's feature id.
         landmark: the new landmark's id (:data:`RELABEL_BASE` minus a count).
+        joined: submaps in the map once that submap was joined (its place in the join order, all robots).
     """
 
     submap: int
     robot: str
     feature: int
     landmark: int
+    joined: int
 
     def as_dict(self) -> dict[str, int | str]:
-        """JSON-ready: ``{"submap", "robot", "feature", "landmark"}``."""
-        return {"submap": self.submap, "robot": self.robot, "feature": self.feature, "landmark": self.landmark}
+        """JSON-ready: ``{"submap", "robot", "feature", "landmark", "joined"}``."""
+        return {"submap": self.submap, "robot": self.robot, "feature": self.feature, "landmark": self.landmark,
+                "joined": self.joined}
 
 
 def as_joined(
     maps: Sequence[LocalMap],
     records: Sequence[Reinitialisation],
-    seqs: Sequence[int] | None = None,
-    robots: Sequence[str] | None = None,
+    joined_at: Sequence[int | None],
+    before: Relabels | None = None,
 ) -> list[LocalMap]:
     """Return the submaps under the feature ids they were joined with (to score a map against them).
-
-    Each map is renamed by the re-initialisations made up to and including its own submap in its
-    robot's stream (a stream's sequence numbers order its joins; one robot's re-initialisation
-    renames every robot's later sightings, so with several robots this is exact for the robot
-    that made it and approximate for the others).
 
     Args:
         maps: the submaps as the front-end sent them.
         records: the re-initialisations (:attr:`~linear_slam_ros.joiner.joiner.Joiner.reinitialised`).
-        seqs: each map's sequence number (``None``: 1, 2, ...).
-        robots: each map's robot (``None``: one robot).
+        joined_at: each map's place in the join order (:attr:`Reinitialisation.joined`'s count;
+            ``None``: never joined, renamed by every record).
+        before: the re-initialisations of a state the joining started from (a snapshot).
+
+    Each map is renamed by ``before`` and the re-initialisations made up to and including its own join.
     """
+    base = before.aliases if before is not None else ()
     out = []
-    for i, m in enumerate(maps):
-        seq = seqs[i] if seqs is not None else i + 1
-        robot = robots[i] if robots is not None else ""
-        aliases = tuple((r.feature, r.landmark) for r in records if r.robot != robot or r.submap <= seq)
+    for m, at in zip(maps, joined_at, strict=True):
+        aliases = (*base, *((r.feature, r.landmark) for r in records if at is None or r.joined <= at))
         out.append(Relabels(aliases).apply(m) if aliases else m)
     return out

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError
 from linear_slam_ros.core.frames import change_frame
@@ -89,11 +90,25 @@ def test_change_frames_moves_every_map_as_change_frame_does(dim, rng):
         _assert_same_map(moved.map_at(j, m.name), want, 1e-11)
 
 
+def test_sparse_information_and_the_level_callback(rng):
+    """Maps whose information is CSR (the pose-graph datasets' joined maps) take the sparse path of the batch."""
+    world = make_world(3, 24, 20, rng, loops=1.2)
+    maps = noisy_local_maps(world, rng, steps_per_map=2)
+    mixed = [m.replace(info=sp.csr_matrix(m.info)) if i % 3 else m for i, m in enumerate(maps)]
+    levels: list[tuple[float, int]] = []
+    got = divide_and_conquer_levels(mixed, lambda seconds, joins: levels.append((seconds, joins)))
+    _assert_same_map(got, _pairwise(maps), 1e-10)
+    assert [joins for _, joins in levels] == [6, 3, 1, 1] and all(seconds >= 0 for seconds, _ in levels)  # 12 maps
+
+
 def test_find_returns_minus_one_for_absent_keys(rng):
     maps = exact_local_maps(make_world(2, 6, 4, rng), rng, poses_per_map=2)
     batch = MapBatch.of_maps(maps)
     held = int(maps[1].keys[0])
     np.testing.assert_array_equal(batch.find(np.array([1, 0, 1]), np.array([held, 10**9, -5])), [maps[0].n_vars, -1, -1])
+    empty = maps[0].replace(ids=maps[0].ids[:0], kinds=maps[0].kinds[:0], x=maps[0].x[:0], info=np.zeros((0, 0)))
+    nothing = MapBatch.of_maps([empty, empty])
+    np.testing.assert_array_equal(nothing.find(np.array([0, 1]), np.array([held, 3])), [-1, -1])
 
 
 def test_errors_name_the_maps_and_poses(rng):

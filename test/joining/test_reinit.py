@@ -59,18 +59,51 @@ def test_a_feature_that_moved_is_split_off_once_then_re_initialised(maps, world)
     for i in range(k, len(stream)):  # from submap k on, every sighting of f is 4 m away from the old one
         if f in stream[i].ids[stream[i].kinds == FEATURE]:
             stream[i] = _moved(stream[i], f, 4.0, world)
-    _offer_all(j, stream)
+    _offer_all(j, stream[: k + 2])
+    saved = j.save()  # just after the re-initialisation
+    for seq, m in enumerate(stream[k + 2 :], start=k + 3):
+        assert j.offer(m, seq) == [seq]
     assert [(g.submap, g.variables) for g in j.gated] == [(k + 1, (f,))]  # only the first moved sighting is kept out
-    assert j.reinitialised == [Reinitialisation(k + 2, "", f, RELABEL_BASE)]
+    assert j.reinitialised == [Reinitialisation(k + 2, "", f, RELABEL_BASE, k + 2)]
     assert j.state.relabels.aliases == ((f, RELABEL_BASE),) and j.state.relabels.suspects == ()
     final = global_result(j.state)
     where = [final.index_of(2 * i + FEATURE) for i in (f, RELABEL_BASE)]  # the old landmark and the new one
     assert None not in where
     old, new = (final.x[final.scalar_slice(i)] for i in where)
     assert 3.5 < np.linalg.norm(old - new) < 4.5  # 4 m apart, as in the world
-    # saved and restored with the state, and the restored joiner renames the next sighting alike
-    back = decode_state(encode_state(j.save()))
-    assert back.state.relabels == j.state.relabels
+    # saved and restored with the state: a joiner restored from it goes on alike, gate on or off
+    assert decode_state(encode_state(saved)).state.relabels == j.state.relabels
+    for gate in (PROBABILITY, None):
+        other = Joiner(JoinMethod.ONLINE_DC, gate_probability=gate)
+        other.restore(decode_state(encode_state(saved)))
+        for seq, m in enumerate(stream[k + 2 :], start=k + 3):
+            assert other.offer(m, seq) == [seq]
+        assert other.gated == [] and other.reinitialised == []
+        np.testing.assert_allclose(global_result(other.state).x, final.x, atol=1e-12)
+
+
+def test_a_re_initialisation_whose_join_fails_is_not_recorded(maps, world, monkeypatch):
+    import linear_slam_ros.joiner.joiner as joiner_module
+    from linear_slam_ros.core.errors import SolverError
+
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=PROBABILITY)
+    k = 12
+    f, _ = _sightings(maps, k)
+    stream = [_moved(m, f, 4.0, world) if i in (k, k + 1) else m for i, m in enumerate(maps)]
+    for seq, m in enumerate(stream[: k + 1], start=1):
+        j.offer(m, seq)
+    assert j.state.relabels.suspects == (f,)
+    real = joiner_module.join_step
+
+    def failing(state, submap, seq, robot=""):
+        if seq == k + 2:
+            raise SolverError("a system the numbers make singular")
+        return real(state, submap, seq, robot)
+
+    monkeypatch.setattr(joiner_module, "join_step", failing)
+    assert j.offer(stream[k + 1], k + 2) == []
+    assert j.reinitialised == [] and j.state.relabels.suspects == (f,) and j.rejected["SolverError"] == 1
+    assert len(j.gated) == 1  # the first split, only
 
 
 def test_one_wrong_sighting_is_split_off_and_the_next_clean_one_clears_the_suspicion(maps, world):
@@ -119,13 +152,13 @@ def test_a_submap_gated_whole_changes_nothing_and_poses_are_never_re_initialised
 
 def test_as_joined_renames_each_submap_by_the_re_initialisations_up_to_its_own(maps):
     f = int(maps[5].ids[maps[5].kinds == FEATURE][0])
-    record = Reinitialisation(submap=4, robot="", feature=f, landmark=RELABEL_BASE)
-    assert record.as_dict() == {"submap": 4, "robot": "", "feature": f, "landmark": RELABEL_BASE}
-    seen = as_joined(maps[:6], [record])
-    for seq, (raw, got) in enumerate(zip(maps[:6], seen, strict=True), start=1):
+    record = Reinitialisation(submap=4, robot="", feature=f, landmark=RELABEL_BASE, joined=4)
+    assert record.as_dict() == {"submap": 4, "robot": "", "feature": f, "landmark": RELABEL_BASE, "joined": 4}
+    seen = as_joined(maps[:6], [record], [1, 2, 3, 4, 5, None])
+    for at, (raw, got) in enumerate(zip(maps[:6], seen, strict=True), start=1):
         has_f = bool(np.any((raw.ids == f) & (raw.kinds == FEATURE)))
         renamed = got.index_of(2 * RELABEL_BASE + FEATURE) is not None
-        assert renamed == (has_f and seq >= 4) and (seq >= 4 or got is raw)
-    # another robot's re-initialisation renames this robot's sightings whatever their numbers
-    other = as_joined(maps[5:6], [Reinitialisation(99, "b", f, RELABEL_BASE)], seqs=[1], robots=["a"])
-    assert other[0].index_of(2 * RELABEL_BASE + FEATURE) is not None
+        assert renamed == (has_f and at >= 4) and (at >= 4 or got is raw)
+    # what a snapshot the joining started from had re-initialised renames every map
+    start = as_joined(maps[:2], [], [1, 2], Relabels(((f, RELABEL_BASE - 7),)))
+    assert all(m.index_of(2 * f + FEATURE) is None for m in start)

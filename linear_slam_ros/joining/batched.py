@@ -331,8 +331,7 @@ def join_pairs(batch: MapBatch) -> MapBatch:
     group_start = np.concatenate([[0], np.cumsum(per_group)])
     target = np.empty(var_map.size, dtype=np.int64)
     def_idx = np.flatnonzero(defining)
-    rank_in_group = np.arange(def_idx.size) - group_start[group[def_idx]]
-    target[def_idx] = group_start[group[def_idx]] + rank_in_group
+    target[def_idx] = np.arange(def_idx.size)  # groups follow each other, so this is their order within each
     target[~defining] = target[match[~defining]]
     new_ids = batch.ids[def_idx]
     new_kinds = batch.kinds[def_idx]

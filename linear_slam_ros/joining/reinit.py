@@ -113,7 +113,7 @@ class Relabels:
         return replace(result, split=tuple(still), submap=submap, reinitialised=pairs)
 
     def after(self, result: GateResult) -> Relabels:
-        """Return the relabels once the submap of ``result`` is joined.
+        """Return the relabels once the gate's decision ``result`` is settled (the rest joined, or nothing left to join).
 
         New landmarks are recorded; a feature split off becomes suspect; a common feature that
         passed, or was re-initialised, is suspect no more. A submap gated whole changes nothing.

@@ -11,7 +11,9 @@ that sighting starts, while the map's old landmark keeps what it had. A suspect 
 sighting passes is cleared: one wrong sighting (the gate's case) changes nothing afterwards.
 
 A front-end does the same when an association fails. Only features are re-initialised: a pose
-that fails is a loop closure, and the chain goes on through it.
+that fails is a loop closure, and the chain goes on through it. The relabels are one value for
+the whole map: with several robots sharing feature ids, a re-initialisation renames every
+robot's later sightings of that feature.
 """
 
 from __future__ import annotations

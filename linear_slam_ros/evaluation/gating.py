@@ -145,9 +145,7 @@ def clean_pass(maps: Sequence[LocalMap], probability: float = PROBABILITY, floor
         ms.append((time.perf_counter() - t0) * 1e3)
         results.append(result)
         variance = variance.updated(result)
-        if result.submap is not None:
-            state = join_step(state, result.submap, seq)
-        state = replace(state, relabels=state.relabels.after(result))
+        state = _joined(state, result, seq - 1)
         plain = join_step(plain, m, seq)
         if seq % 250 == 0:
             logger.info("gating: clean pass %d/%d, gate ms p50 %.1f, %d gated", seq, len(maps),

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
 from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, sequential_step
 from support import join_sequential, join_sequential_information
@@ -71,3 +71,43 @@ def test_dimension_mismatch_and_empty_input(rng):
         join_sequential([])
     with pytest.raises(FrameError, match="pose 99 is not in the global map"):
         state.global_map.change_frame(99)
+
+
+def _joined_3d(rng):
+    world = make_world(3, 12, 10, rng)
+    state = SequentialState()
+    for m in noisy_local_maps(world, rng, steps_per_map=3):
+        state = sequential_step(state, m)
+    return state.global_map
+
+
+def test_factor_q_applied_in_every_mode_equals_its_dense_block(rng):
+    g = _joined_3d(rng)
+    q = g.q_block(np.arange(g.n_vars))
+    gram = g.ang_blocks @ g.ang_blocks.transpose(0, 2, 1)
+    assert np.abs(gram - np.eye(3)).max() > 1e-3  # the angle blocks are not even rotations
+    mat = rng.normal(size=(g.state_dim, 4))
+    np.testing.assert_allclose(g._apply_q(mat), q @ mat, atol=1e-12)
+    np.testing.assert_allclose(g._apply_q(mat, transpose=True), q.T @ mat, atol=1e-12)
+    np.testing.assert_allclose(g._apply_q(mat, inverse=True), np.linalg.solve(q, mat), atol=1e-10)
+    np.testing.assert_allclose(g._apply_q(mat, inverse=True, transpose=True), np.linalg.solve(q.T, mat), atol=1e-10)
+
+
+def test_information_is_the_inverse_of_the_covariance(rng):
+    g = _joined_3d(rng)
+    info = g.to_local_map().info_dense()
+    np.testing.assert_allclose(info @ g.cov, np.eye(g.state_dim), atol=1e-8)
+    np.testing.assert_array_equal(info, info.T)
+
+
+def test_covariance_or_information_not_positive_definite_is_refused(rng):
+    g = _joined_3d(rng)
+    bad = np.array(g.cov_tilde, order="F")
+    bad[3, 3] = -1.0
+    with pytest.raises(SolverError, match="covariance of the global map is not positive definite"):
+        g.replace(cov_tilde=bad).to_local_map()
+    m = noisy_local_maps(make_world(2, 6, 6, rng), rng, 2)[0]
+    info = m.info_dense().copy()
+    info[0, 0] = -info[0, 0]
+    with pytest.raises(SolverError, match="information of map 'noisy_1' is not positive definite"):
+        CovarianceMap.from_local_map(m.replace(info=info))

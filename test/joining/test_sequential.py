@@ -7,7 +7,7 @@ import pytest
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
-from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState, sequential_step
+from linear_slam_ros.joining.sequential import MIRROR_BLOCK, CovarianceMap, SequentialState, _mirror_lower, sequential_step
 from support import join_sequential, join_sequential_information
 
 
@@ -111,3 +111,13 @@ def test_covariance_or_information_not_positive_definite_is_refused(rng):
     info[0, 0] = -info[0, 0]
     with pytest.raises(SolverError, match="information of map 'noisy_1' is not positive definite"):
         CovarianceMap.from_local_map(m.replace(info=info))
+
+
+@pytest.mark.parametrize("n", [0, 1, MIRROR_BLOCK - 1, MIRROR_BLOCK, 2 * MIRROR_BLOCK + 5])
+def test_mirror_lower_copies_the_lower_triangle_up_in_place(n, rng):
+    for order in ("F", "C"):
+        matrix = np.array(rng.normal(size=(n, n)), order=order)
+        lower = np.tril(matrix)
+        out = _mirror_lower(matrix)
+        assert out is matrix
+        np.testing.assert_array_equal(out, lower + np.tril(lower, -1).T)

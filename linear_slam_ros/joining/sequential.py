@@ -112,6 +112,19 @@ def _mirror_lower(matrix: FloatArray) -> FloatArray:
     return matrix
 
 
+def _copy_lower(dst: FloatArray, src: FloatArray) -> None:
+    """Copy the lower triangle of square ``src`` into the top-left corner of ``dst``, block by block.
+
+    Column blocks of :data:`MIRROR_BLOCK` from their diagonal down: about half the memory
+    traffic of copying the whole matrix (the upper triangle is not kept up to date anyway; a
+    few entries above the diagonal blocks come along).
+    """
+    n = src.shape[0]
+    for j in range(0, n, MIRROR_BLOCK):
+        end = min(j + MIRROR_BLOCK, n)
+        dst[j:n, j:end] = src[j:, j:end]
+
+
 def _symmetrize_lower(lower: FloatArray) -> FloatArray:
     """Return the full symmetric matrix whose lower triangle is stored in ``lower`` (a new matrix)."""
     return _mirror_lower(np.array(lower, order="F"))
@@ -350,7 +363,7 @@ def _fuse(global_map: CovarianceMap, submap: LocalMap) -> CovarianceMap:
 
     n_total = n_g + n_new
     cov_t = np.empty((n_total, n_total), order="F")
-    cov_t[:n_g, :n_g] = g.cov_tilde
+    _copy_lower(cov_t, g.cov_tilde)
     x = g.x.copy()
     if c:
         q_cc = g.q_block(pos[common_vars])

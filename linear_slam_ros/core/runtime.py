@@ -9,9 +9,11 @@ Two settings were measured to matter on the 2-core target machine (README, "Perf
   the last; glibc then serves every one with a fresh ``mmap`` and pays page faults on all of
   it. A fixed, high threshold lets freed matrices be reused (VicPark200: 1.1 s -> 0.85 s).
   Fixing it also fixes glibc's trim threshold at its default, 128 KiB, so a freed matrix at the
-  top of the heap was still handed back and faulted in again by the next step; the trim
-  threshold now follows the mmap threshold (exact sequential, VicPark200 and DLR200: the copy of
-  the covariance into each step's new matrix 0.27 -> 0.10 s and 0.44 -> 0.21 s).
+  top of the heap was still handed back and faulted in again by the next step; with the
+  reusing threshold the trim threshold is raised to match (exact sequential, VicPark200 and
+  DLR200: the copy of the covariance into each step's new matrix 0.27 -> 0.10 s and 0.44 ->
+  0.21 s). With the returning one it stays at the default: a 4 MiB trim threshold raised the
+  node's peak RSS on manhattanOlson3500 from 220-224 to 238-245 MB (two runs each).
   The other strategies allocate and free large sparse arrays from several threads in the node,
   where a high threshold keeps freed blocks in each thread's heap: a fixed 4 MiB threshold hands
   them back (node peak RSS, two runs each: features2d-5000 513-515 MB against 731-859 MB,
@@ -35,15 +37,19 @@ MMAP_THRESHOLD_REUSE = 1 << 30
 """Bytes: glibc's mmap threshold for the exact sequential strategies (freed dense matrices reused)."""
 MMAP_THRESHOLD_RETURN = 4 << 20
 """Bytes: glibc's mmap threshold for the other strategies (large freed arrays handed back)."""
+DEFAULT_TRIM_THRESHOLD = 128 << 10
+"""Bytes: glibc's default trim threshold (free memory at the heap's top beyond it is handed back)."""
 
 
 def tune_allocator(threshold_bytes: int) -> bool:
-    """Fix glibc's mmap and trim thresholds at ``threshold_bytes`` (no dynamic thresholds); return success.
+    """Fix glibc's mmap and trim thresholds (no dynamic thresholds); return success.
 
     Args:
         threshold_bytes: allocations of at least this many bytes are mapped, and unmapped when
-            freed; smaller ones come from the heap, and free memory at the top of the heap is
-            handed back only beyond this many bytes (a strategy's ``mmap_threshold``).
+            freed; smaller ones come from the heap (a strategy's ``mmap_threshold``). From
+            :data:`MMAP_THRESHOLD_REUSE` up, free memory at the heap's top is kept up to this
+            many bytes too (trim threshold); below, it is handed back beyond
+            :data:`DEFAULT_TRIM_THRESHOLD`, glibc's default.
 
     A no-op returning ``False`` on platforms without glibc's ``mallopt``.
     """
@@ -51,11 +57,12 @@ def tune_allocator(threshold_bytes: int) -> bool:
         return False
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim_bytes = threshold_bytes if threshold_bytes >= MMAP_THRESHOLD_REUSE else DEFAULT_TRIM_THRESHOLD
         ok = bool(libc.mallopt(_M_MMAP_THRESHOLD, threshold_bytes))
-        ok = bool(libc.mallopt(_M_TRIM_THRESHOLD, threshold_bytes)) and ok
+        ok = bool(libc.mallopt(_M_TRIM_THRESHOLD, trim_bytes)) and ok
     except (OSError, AttributeError):
         return False
-    logger.debug("mallopt(M_MMAP_THRESHOLD and M_TRIM_THRESHOLD, %d) -> %s", threshold_bytes, ok)
+    logger.debug("mallopt(M_MMAP_THRESHOLD, %d), mallopt(M_TRIM_THRESHOLD, %d) -> %s", threshold_bytes, trim_bytes, ok)
     return ok
 
 

@@ -20,11 +20,15 @@ class _FakeLibc:
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
-def test_tune_allocator_fixes_the_mmap_and_the_trim_threshold(monkeypatch):
+def test_tune_allocator_fixes_the_mmap_and_the_trim_thresholds(monkeypatch):
     libc = _FakeLibc()
     monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: libc)
     assert runtime.tune_allocator(runtime.MMAP_THRESHOLD_REUSE)
     assert sorted(libc.calls) == [(-3, 1 << 30), (-1, 1 << 30)]  # M_MMAP_THRESHOLD, M_TRIM_THRESHOLD
+    returning = _FakeLibc()
+    monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: returning)
+    assert runtime.tune_allocator(runtime.MMAP_THRESHOLD_RETURN)  # freed memory handed back: trim at glibc's default
+    assert sorted(returning.calls) == [(-3, 4 << 20), (-1, 128 << 10)]
     refused = _FakeLibc(answer=0)
     monkeypatch.setattr(runtime.ctypes, "CDLL", lambda name: refused)
     assert not runtime.tune_allocator(runtime.MMAP_THRESHOLD_RETURN)

@@ -44,6 +44,7 @@ from linear_slam_ros.core.local_map import (
     to_dense,
     var_offsets,
 )
+from linear_slam_ros.core.runtime import blas_threads
 
 logger = logging.getLogger(__name__)
 
@@ -53,8 +54,8 @@ IntArray = npt.NDArray[np.int64]
 
 _syrk = scipy.linalg.blas.get_blas_funcs("syrk", dtype=np.float64)
 _syr2k = scipy.linalg.blas.get_blas_funcs("syr2k", dtype=np.float64)
-_potrf = scipy.linalg.lapack.get_lapack_funcs("potrf", dtype=np.float64)
-_potri = scipy.linalg.lapack.get_lapack_funcs("potri", dtype=np.float64)
+_potrf = scipy.linalg.lapack.dpotrf
+_potri = scipy.linalg.lapack.dpotri
 
 
 def _spd_inverse_lower(matrix: FloatArray, what: str) -> FloatArray:
@@ -62,7 +63,10 @@ def _spd_inverse_lower(matrix: FloatArray, what: str) -> FloatArray:
 
     One Cholesky factorisation and LAPACK's inverse from it (``potrf``, ``potri``): about
     ``n^3`` flops, against ``7 n^3 / 3`` for solving with the identity. Only the lower triangle
-    of ``matrix`` is read.
+    of ``matrix`` is read. On one BLAS thread whatever the caller's setting: OpenBLAS's threaded
+    ``potri`` rounds differently with the number of threads, and a joined map must not depend
+    on it (the CLI and the node run this strategy on one thread; a library user's
+    :class:`~linear_slam_ros.joiner.joiner.Joiner` may not).
 
     Args:
         matrix: ``(n, n)`` symmetric (lower triangle used).
@@ -73,9 +77,10 @@ def _spd_inverse_lower(matrix: FloatArray, what: str) -> FloatArray:
     """
     if matrix.shape[0] == 0:
         return np.zeros((0, 0), order="F")
-    factor, info = _potrf(matrix, lower=1, clean=0, overwrite_a=0)
-    if info == 0:
-        factor, info = _potri(factor, lower=1, overwrite_c=1)
+    with blas_threads(1):
+        factor, info = _potrf(matrix, lower=1, clean=0, overwrite_a=0)
+        if info == 0:
+            factor, info = _potri(factor, lower=1, overwrite_c=1)
     if info != 0:
         raise SolverError(f"{what} is not positive definite")
     return np.asfortranarray(factor)

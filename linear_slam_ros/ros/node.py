@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import gc
 import logging
 import os
 import sys
@@ -841,6 +842,10 @@ def main(args: list[str] | None = None) -> None:
     node = None
     try:
         node = JoinerNode()
+        # What exists now (modules, rclpy, the node) lives as long as the process: the cyclic
+        # collector stops rescanning it (README, "Scale": its full collections held the
+        # interpreter lock for 50-60 ms while the outputs built their messages).
+        gc.freeze()
         executor = SingleThreadedExecutor()  # outputs have their own thread (PeriodicThread)
         executor.add_node(node)
         executor.spin()

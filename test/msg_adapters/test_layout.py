@@ -79,6 +79,19 @@ def test_rclpy_message_carries_labels_and_cdr_crosses_libraries(rng):
     _assert_same(decode_map(*bag_parts(deserialize(serialize_message(msg)))).local_map, local)
 
 
+@pytest.mark.parametrize("chunk_bytes", [8, 40, 1 << 20])
+def test_message_data_is_copied_in_chunks_bit_exactly(chunk_bytes, rng, monkeypatch):
+    import msg_adapters.ros
+
+    monkeypatch.setattr(msg_adapters.ros, "COPY_CHUNK_BYTES", chunk_bytes)  # 40: a partial last chunk
+    local, _ = _maps(2, rng)
+    enc = encode_map(local, 3)
+    assert enc.data.nbytes % 40 != 0 and enc.data.nbytes > 40
+    msg = to_msg(enc)
+    assert msg.data.typecode == "d" and msg.data.tobytes() == enc.data.tobytes()
+    _assert_same(decode_map(*parts(msg)).local_map, local)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 def test_chunk_round_trip_is_bit_exact(dim):
     chunk = _chunk(dim)

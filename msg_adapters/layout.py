@@ -241,7 +241,7 @@ def _segments(
 
 
 def _check_finite(seg: dict[str, FloatArray], what: str) -> None:
-    bad = [k for k, v in seg.items() if not np.all(np.isfinite(v))]
+    bad = [k for k, v in seg.items() if not np.isfinite(v).all()]
     if bad:
         raise MessageError(f"{what}: non-finite values in segment(s) {bad}")
 
@@ -273,7 +273,7 @@ def _check_map_sizes(seg: dict[str, FloatArray], limits: InputLimits, what: str)
 
 
 def _ints(values: FloatArray, name: str, what: str) -> npt.NDArray[np.int64]:
-    if np.any(values != np.round(values)) or np.any(np.abs(values) >= _MAX_EXACT):
+    if (values != np.round(values)).any() or (np.abs(values) >= _MAX_EXACT).any():
         raise MessageError(f"{what}: segment {name!r} must hold integers")
     return values.astype(np.int64)
 

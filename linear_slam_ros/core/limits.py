@@ -53,7 +53,8 @@ class InputLimits:
             off-diagonal entries of a positive-definite matrix are bounded by the diagonal).
         max_condition: largest allowed condition number of an information matrix: of each
             edge's ``p x p`` block (2-norm, exact), of a map's whole matrix (1-norm estimate
-            from its Cholesky or LU factor, never densifying a large sparse one).
+            from its Cholesky or LU factor, never densifying a large sparse one; exact from the
+            blocks for the block-diagonal map of a star pose-graph chunk).
         max_angle: largest allowed ``|angle|`` of a pose orientation (state entries, pose-graph
             measurements), rad. Double spacing at 1e4 rad is 1.8e-12 rad, so sin and cos of
             any allowed angle are exact to 1e-12; 1e4 rad is 1,590 turns of an unwrapped

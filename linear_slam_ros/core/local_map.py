@@ -392,12 +392,27 @@ class LocalMap(VariableLayout):
             raise InvalidMapError(f"{who}: state has shape {self.x.shape}, the variables need ({n},)")
         if self.info.shape != (n, n):
             raise InvalidMapError(f"{who}: information matrix has shape {self.info.shape}, expected ({n}, {n})")
-        if not np.all(np.isfinite(self.x)):
-            bad = int(np.flatnonzero(~np.isfinite(self.x))[0])
-            raise InvalidMapError(f"{who}: state entry {bad} is not finite ({self.x[bad]})")
         values = self.info.data if sp.issparse(self.info) else np.asarray(self.info)
         if not np.all(np.isfinite(values)):
             raise InvalidMapError(f"{who}: information matrix has non-finite entries")
+        self.check_numbers(limits)
+
+    def check_numbers(self, limits: InputLimits | None = None, blocks: FloatArray | None = None) -> None:
+        """Check the part of :meth:`validate` that is about numbers, for a map whose structure is right.
+
+        The estimate must be finite with pose angles within ``max_angle`` and coordinates within
+        ``max_coordinate``, and the information must pass :func:`check_information` (with
+        ``blocks``, the ``(m, p, p)`` diagonal blocks of a block-diagonal information already known
+        symmetric and positive definite: :func:`check_block_diagonal_information`, from the blocks
+        alone).
+
+        Raises:
+            InvalidMapError: the first fault, naming the map and the state entry.
+        """
+        who = f"local map {self.name!r}"
+        if not np.all(np.isfinite(self.x)):
+            bad = int(np.flatnonzero(~np.isfinite(self.x))[0])
+            raise InvalidMapError(f"{who}: state entry {bad} is not finite ({self.x[bad]})")
         lim = limits_or_default(limits)
         angles = self.angles
         for mask, what, limit_name in ((angles, "angle", "max_angle"), (~angles, "coordinate", "max_coordinate")):
@@ -405,7 +420,10 @@ class LocalMap(VariableLayout):
             if i is not None:
                 where = f"{what} at state index {i} ({self._describe_index(i)})"
                 raise InvalidMapError(f"{who}: {beyond_message(where, float(self.x[i]), limit_name, lim)}")
-        check_information(self.info, who, lim, self._describe_index)
+        if blocks is None:
+            check_information(self.info, who, lim, self._describe_index)
+        else:
+            check_block_diagonal_information(blocks, who, lim, self._describe_index)
 
     def _describe_index(self, i: int) -> str:
         var = int(np.searchsorted(self.offsets, i, side="right")) - 1
@@ -493,6 +511,44 @@ def check_information(
             raise InvalidMapError(f"{who}: information matrix is not positive definite")
         condition = float(spla.norm(csc, 1)) * _inverse_one_norm(lu.solve, n)
     fault = condition_fault(condition, _CONDITION_HOW, lim)
+    if fault is not None:
+        raise InvalidMapError(f"{who}: {fault}")
+
+
+def check_block_diagonal_information(
+    blocks: FloatArray, who: str, limits: InputLimits | None = None, describe: Callable[[int], str] | None = None
+) -> None:
+    """:func:`check_information`'s bounds for the block-diagonal matrix of ``blocks``, from the blocks alone.
+
+    For a pose-only map made of independent edges (a star pose-graph chunk), whose blocks are
+    already known symmetric and positive definite (:class:`linear_slam_ros.pose_graph.graph.PoseGraph`
+    checks each edge's; a sum of such blocks is one): every diagonal entry within
+    ``[min_information, max_information]`` and the 1-norm condition number, here exact rather
+    than estimated, ``||A||_1 ||A^-1||_1 = max_b ||B_b||_1 max_b ||B_b^-1||_1``. Nothing of
+    size ``(m p)²`` is formed.
+
+    Args:
+        blocks: ``(m, p, p)`` the diagonal blocks.
+        who: the prefix of every error.
+        limits: the bounds (default limits when None).
+        describe: what state index ``i`` belongs to, for the messages.
+
+    Raises:
+        InvalidMapError: a bound fails (or a block is singular after all), prefixed by ``who``.
+    """
+    lim = limits_or_default(limits)
+    m, p = blocks.shape[0], blocks.shape[-1]
+    if m == 0:
+        return
+    fault = information_diagonal_fault(blocks[:, np.arange(p), np.arange(p)].reshape(-1), lim, describe)
+    if fault is not None:
+        raise InvalidMapError(f"{who}: {fault}")
+    try:
+        inverses = np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        raise InvalidMapError(f"{who}: information matrix is singular") from None
+    condition = float(np.abs(blocks).sum(axis=1).max() * np.abs(inverses).sum(axis=1).max())
+    fault = condition_fault(condition, "1-norm", lim)
     if fault is not None:
         raise InvalidMapError(f"{who}: {fault}")
 

@@ -53,9 +53,19 @@ def star_chunk_to_local_map(graph: PoseGraph, limits: InputLimits | None = None)
         )
     frame = int(graph.from_ids[0])
     ids, values, blocks = fuse_star_edges(graph)
-    kinds = np.full(ids.size, POSE, dtype=np.int8)
-    info = block_diagonal(blocks)
-    return _checked_map(graph.dim, frame, default_end_pose(frame, ids), ids, kinds, values.reshape(-1), info, graph.name, limits)
+    local = LocalMap.trusted(
+        graph.dim, frame, default_end_pose(frame, ids), np.ascontiguousarray(ids, dtype=np.int64),
+        np.full(ids.size, POSE, dtype=np.int8), np.ascontiguousarray(values.reshape(-1), dtype=np.float64),
+        block_diagonal(blocks), name=graph.name,
+    )
+    # The structure holds by construction (distinct poses, none of them the frame, the end pose
+    # one of them) and the blocks are symmetric positive definite (the graph checked each edge):
+    # what is left are the bounds, checked from the blocks (the pose-graph decoder's hot path).
+    try:
+        local.check_numbers(limits, blocks=blocks)
+    except InvalidMapError as exc:
+        raise GraphError(str(exc)) from None
+    return local
 
 
 def fuse_star_edges(graph: PoseGraph) -> tuple[IntArray, FloatArray, FloatArray]:

@@ -84,6 +84,11 @@ class PoseGraph:
         Raises:
             GraphError: the first fault, naming the graph and the edge.
         """
+        self._validate(limits, poses_from_edges=False)
+
+    def _validate(self, limits: InputLimits | None, poses_from_edges: bool) -> None:
+        """:meth:`validate`; ``poses_from_edges``: ``pose_ids`` is the union of the edges' ids
+        (:meth:`from_edges` made it so), whose checks then hold by construction."""
         who = self.name
         if self.dim not in (2, 3):
             raise GraphError(f"{who}: dimension must be 2 or 3, got {self.dim}")
@@ -98,15 +103,16 @@ class PoseGraph:
                 f"{who}: {k} edges need measurements ({k}, {p}) and information ({k}, {p}, {p}), got "
                 f"{np.shape(self.measurements)} and {np.shape(self.information)}"
             )
-        if np.any(self.from_ids < 0) or np.any(self.to_ids < 0) or np.any(self.pose_ids < 0):
+        if (self.from_ids < 0).any() or (self.to_ids < 0).any() or (self.pose_ids < 0).any():
             raise GraphError(f"{who}: pose ids must be >= 0")
-        if np.ndim(self.pose_ids) != 1 or np.any(np.diff(self.pose_ids) <= 0):
-            raise GraphError(f"{who}: pose_ids must be sorted and unique")
-        self._check_known_poses()
+        if not poses_from_edges:
+            if np.ndim(self.pose_ids) != 1 or np.any(np.diff(self.pose_ids) <= 0):
+                raise GraphError(f"{who}: pose_ids must be sorted and unique")
+            self._check_known_poses()
         loops = np.flatnonzero(self.from_ids == self.to_ids)
         if loops.size:
             raise GraphError(f"{who}: edge {int(loops[0])} connects pose {int(self.from_ids[loops[0]])} to itself")
-        if not (np.all(np.isfinite(self.measurements)) and np.all(np.isfinite(self.information))):
+        if not (np.isfinite(self.measurements).all() and np.isfinite(self.information).all()):
             raise GraphError(f"{who}: non-finite measurement or information")
         lim = limits_or_default(limits)
         self._check_measurements(lim)
@@ -219,7 +225,7 @@ class PoseGraph:
         for field, value in (("dim", dim), ("from_ids", f), ("to_ids", t), ("measurements", z), ("information", info),
                              ("pose_ids", poses), ("name", name)):
             object.__setattr__(graph, field, value)
-        graph.validate(limits)
+        graph._validate(limits, poses_from_edges=pose_ids is None)
         return graph
 
     @property

@@ -144,7 +144,9 @@ def run_demo(
                 if not spin_until(node, lambda: bool(refined_raw) or joiner.poll() is not None, 60.0) or not refined_raw:
                     raise RuntimeError("the joiner's refiner published no global_map_refined within 60 s")
             started: list[float] = []
+            cpu_before_play = time.process_time()
             play(node, records, rate_factor=rate_factor, wait_s=60.0, on_start=lambda: started.append(time.monotonic()))
+            replay_cpu_s = time.process_time() - cpu_before_play  # this process's load on the joiner's machine
             t0 = started[0]
             try:
                 latest.wait(all_handled, timeout_s, joiner)
@@ -174,7 +176,9 @@ def run_demo(
         code = stop_process(joiner)
     # the maps for χ²: the dataset's, or the bag's own when the dataset is not there (the same maps)
     source = load_source(dataset if dataset.exists() or str(dataset).startswith("synthetic:") else bag)
-    report = write_outputs(out, message, raw, source.maps, source.name, mode, n_sent, seconds, diagnostics, code)
+    report = write_outputs(
+        out, message, raw, source.maps, source.name, mode, n_sent, seconds, diagnostics, code, {"replay_cpu_s": replay_cpu_s},
+    )
     if refine:
         if refined is None or refined[0].n_submaps < message.n_submaps:
             raise RuntimeError(f"no converged global_map_refined covering {message.n_submaps} submaps within {timeout_s:.0f} s")
@@ -193,7 +197,7 @@ def run_demo(
 
 def write_outputs(
     out: Path, message: MapMessage, raw: bytes, maps: Sequence[LocalMap], name: str, mode: str, n_sent: int,
-    seconds: float, diagnostics: dict[str, float], exit_code: int,
+    seconds: float, diagnostics: dict[str, float], exit_code: int, extra: dict[str, object] | None = None,
 ) -> dict[str, object]:
     """Write ``poses.txt``, ``features.txt``, ``report.json``, ``map.png`` and ``global_map_bag`` of a final global map.
 
@@ -203,6 +207,7 @@ def write_outputs(
         seconds: from the first message sent to the final map received.
         diagnostics: the joiner's ``/diagnostics`` values after it.
         exit_code: the joiner's.
+        extra: more keys of ``report.json`` (``replay_cpu_s``: the replaying process's CPU while it sent).
     """
     in_first = write_result(out, message.local_map, maps[0].frame_id)
     stats = message.stats or {}
@@ -222,10 +227,12 @@ def write_outputs(
         **{key: diagnostics.get(key) for key in FRESHNESS_KEYS},
         "submaps_per_second": message.n_submaps / seconds if seconds > 0 else None,
         "joiner_peak_rss_mb": diagnostics.get("peak_rss_mb"),
+        "joiner_cpu_s": diagnostics.get("cpu_seconds"),
         "state_dim": message.local_map.state_dim,
         "n_islands": len(message.islands) if message.islands else 1,
         "island_sizes": sorted(message.islands or (message.n_submaps,), reverse=True),
         "joiner_exit_code": exit_code,
+        **(extra or {}),
     }
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     title = f"{report['dataset']}: {message.n_submaps} submaps joined ({mode}), χ² {report['chi2']:.1f}"

@@ -14,9 +14,8 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, cast
 
 import numpy as np
 import rclpy
@@ -25,10 +24,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.serialization import deserialize_message
+from rclpy.subscription import Subscription
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -68,6 +69,11 @@ PRUNE_EVERY = 1024
 """Offers between two prunings of the per-sequence-number records (a scan of each: amortised)."""
 SNAPSHOT_CHECK_PERIOD = 0.25
 """s between two checks whether a snapshot is due (``snapshot_period`` submaps joined since the last)."""
+DRAIN_MAX = 16
+"""Messages an inbound subscription's callback takes from its own queue after the one the
+executor handed it (:func:`take_queued`): at full speed the executor's own round per message
+(wait set, ready scan, a coroutine) cost about as much as decoding it. Services and timers
+wait at most this many submaps (tens of milliseconds)."""
 SWITCH_INTERVAL = 0.0005
 """s, the interpreter's thread switch interval: an arrival waits at most this long for the
 background merge thread to hand over the interpreter lock (Python's default is 5 ms)."""
@@ -186,9 +192,8 @@ class JoinerNode(Node):
         for robot in self._slots:  # with robots: each robot's topics in its namespace
             for base in ("local_map", "pose_graph"):
                 topic = f"{robot}/{base}" if robot else base
-                self.create_subscription(
-                    Float64MultiArray, topic, self._receiver(topic, robot), inbound, raw=True,
-                )
+                receive = self._receiver(topic, robot)
+                receive.subscription = self.create_subscription(Float64MultiArray, topic, receive, inbound, raw=True)
         self.pub_global = self.create_publisher(Float64MultiArray, "global_map", latched)
         self.pub_path = self.create_publisher(PathMsg, "path", latched)
         self.pub_markers = self.create_publisher(MarkerArray, "features", latched)
@@ -243,13 +248,24 @@ class JoinerNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
-    def _receiver(self, topic: str, robot: str) -> Callable[[bytes], None]:
-        """Return the subscription callback of ``robot``'s ``topic``."""
+    def _receiver(self, topic: str, robot: str) -> _Receiver:
+        """Return the subscription callback of ``robot``'s ``topic`` (its ``subscription`` is set once created).
+
+        After the message it is given it takes up to :data:`DRAIN_MAX` more from the same
+        subscription's queue, in order, as the executor would have handed them over.
+        """
 
         def receive(raw: bytes) -> None:
             self._receive(topic, raw, robot)
+            for _ in range(DRAIN_MAX):
+                queued = take_queued(receiver.subscription)
+                if queued is None:
+                    return
+                self._receive(topic, queued, robot)
 
-        return receive
+        receiver = cast(_Receiver, receive)
+        receiver.subscription = None
+        return receiver
 
     def _receive(self, topic: str, raw: bytes, robot: str = "") -> None:
         """Decode an inbound message of ``robot``, journal it (with ``state_dir``), then offer it to the joiner."""
@@ -627,7 +643,7 @@ class JoinerNode(Node):
                     self._timeline[s][3] = seconds * 1e3
 
     def node_stats(self) -> dict[str, float]:
-        """Return the node's freshness (ms), background-merge and memory figures."""
+        """Return the node's freshness (ms), background-merge, memory and CPU figures."""
         out: dict[str, float] = {}
         for what, samples in (("pose", self._fresh_pose), ("map", self._fresh_map)):
             lat = latency(samples)
@@ -639,6 +655,7 @@ class JoinerNode(Node):
             out["background_merges"] = float(self.worker.n_done)
             out["background_merge_seconds_total"] = self.worker.seconds
         out["peak_rss_mb"] = peak_rss_mb()
+        out["cpu_seconds"] = time.process_time()  # every thread of the process, since it started
         return out
 
     def _write_timeline(self, path: Path) -> None:
@@ -780,6 +797,30 @@ class JoinerNode(Node):
         # the exact pose covariance's cost, on the output thread (README, pose)
         status.values.append(KeyValue(key="pose_cov_exact_cpu_seconds_total", value=f"{self._poses.exact_seconds:g}"))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
+
+
+class _Receiver(Protocol):
+    """An inbound subscription's callback, which knows its subscription."""
+
+    subscription: Subscription | None
+
+    def __call__(self, raw: bytes) -> None: ...
+
+
+def take_queued(subscription: Subscription | None) -> Any | None:
+    """Take the next message waiting in ``subscription``'s queue (raw bytes for a raw one), or None.
+
+    This is the executor's own take (``rclpy.executors``, ``rclpy.wait_for_message``); a
+    destroyed subscription has nothing to take.
+    """
+    if subscription is None:
+        return None
+    try:
+        with subscription.handle:
+            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+    except InvalidHandle:
+        return None
+    return None if taken is None else taken[0]
 
 
 def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int, Stamp]:

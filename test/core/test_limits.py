@@ -4,17 +4,25 @@ angles, coordinates), each with an error naming the limit and the value; sparse 
 from __future__ import annotations
 
 import dataclasses
+import re
 import resource
 import time
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.sparse as sp
 
 from linear_slam_ros.core import local_map as local_map_module
 from linear_slam_ros.core.errors import ConfigError, InvalidMapError
 from linear_slam_ros.core.limits import DEFAULT_LIMITS, LIMIT_NAMES, NODE_LIMITS, InputLimits
-from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, check_information
+from linear_slam_ros.core.local_map import (
+    FEATURE,
+    POSE,
+    LocalMap,
+    check_block_diagonal_information,
+    check_information,
+)
 from linear_slam_ros.joiner.config import JoinerConfig
 
 
@@ -135,6 +143,43 @@ def test_condition_estimate_is_that_of_the_matrix_dense_and_sparse(monkeypatch, 
         with pytest.raises(InvalidMapError, match="^m: information matrix is too ill-conditioned"):
             check_information(matrix, "m", below)
         monkeypatch.undo()
+
+
+def test_block_diagonal_check_is_the_exact_one_norm_condition_of_the_whole_matrix(rng):
+    """Blocks each well conditioned, the whole matrix not: the condition is the dense matrix's 1-norm one."""
+    blocks = []
+    for scale in (1e-3, 1.0, 1e5):
+        a = rng.normal(size=(3, 3))
+        blocks.append(scale * (a @ a.T + 3 * np.eye(3)))
+    blocks = np.stack(blocks)
+    dense = scipy.linalg.block_diag(*blocks)
+    exact = float(np.linalg.cond(dense, 1))
+    assert max(np.linalg.cond(b, 1) for b in blocks) < 1e3 < 1e7 < exact
+    check_block_diagonal_information(blocks, "m", InputLimits(max_condition=exact * (1 + 1e-9)))
+    check_information(dense, "m", InputLimits(max_condition=exact * (1 + 1e-9)))  # the estimate is at most the exact value
+    below = InputLimits(max_condition=exact * (1 - 1e-9))
+    match = f"^m: .* condition number {re.escape(f'{exact:.3g}')} \\(1-norm\\) is above the limit"
+    with pytest.raises(InvalidMapError, match=match):
+        check_block_diagonal_information(blocks, "m", below)
+    check_block_diagonal_information(blocks[:0], "m", below)  # no variable: nothing to check
+
+
+def test_block_diagonal_check_names_the_entry_and_a_singular_block():
+    blocks = np.stack([np.eye(3), np.diag([1.0, 1e-13, 1.0])])
+    describe = {i: f"pose {i // 3}" for i in range(6)}.get
+    with pytest.raises(InvalidMapError, match="^m: information diagonal entry 4 \\(pose 1\\) is 1e-13, below the limit min"):
+        check_block_diagonal_information(blocks, "m", None, describe)
+    singular = np.stack([np.eye(2), np.ones((2, 2))])
+    with pytest.raises(InvalidMapError, match="^m: information matrix is singular$"):
+        check_block_diagonal_information(singular, "m")
+
+
+def test_check_numbers_is_validate_without_the_structure():
+    m = _map()
+    m.check_numbers()
+    bad = _map().replace(x=np.array([1.0, 0.0, np.nan, 2.0, 3.0]))
+    with pytest.raises(InvalidMapError, match="^local map 'lm': state entry 2 is not finite \\(nan\\)$"):
+        bad.check_numbers()
 
 
 def test_large_sparse_information_is_checked_without_densifying():

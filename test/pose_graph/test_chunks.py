@@ -7,7 +7,7 @@ import pytest
 import scipy.linalg
 import scipy.sparse as sp
 
-from linear_slam_ros.core.errors import GraphError
+from linear_slam_ros.core.errors import GraphError, InvalidMapError
 from linear_slam_ros.core.geometry import relative_pose
 from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import fuse_repeated
@@ -37,6 +37,24 @@ def test_parallel_edges_are_fused(make_chunk):
     m = chunk_to_local_map(make_chunk(to_ids=np.array([4, 4]), measurements=np.array([[1.0, 0, 0.1], [1.3, 0, 0.1]])))
     np.testing.assert_array_equal(m.ids, [4])
     np.testing.assert_allclose(m.x, [1.2, 0, 0.1])
+
+
+def test_star_map_is_checked_as_a_whole_against_the_limits(make_chunk):
+    """Each edge passes the graph's per-edge checks; the map the chunk makes is refused as a whole, as
+    :meth:`LocalMap.validate` would refuse it, and a valid one passes ``validate`` too."""
+    information = np.stack([np.eye(3), 1e6 * np.eye(3)])  # each block condition 1, the map 1e6
+    limits = InputLimits(max_condition=1e5)
+    chunk = make_chunk(information=information, limits=limits)
+    with pytest.raises(GraphError, match="^local map 'pose-graph chunk 1': .* condition number 1e\\+06 \\(1-norm\\) is above"):
+        star_chunk_to_local_map(chunk, limits)
+    local = star_chunk_to_local_map(chunk)
+    local.validate()
+    with pytest.raises(InvalidMapError, match="1e\\+06 \\(1-norm estimate\\) is above"):
+        local.validate(limits)  # the full validation agrees
+    fused = make_chunk(to_ids=np.array([4, 4]), measurements=np.array([[1.0, 0, 3.0], [1.0, 0, -3.0]]))
+    match = "angle at state index 2 \\(pose 4\\) is 3.1\\d* rad, beyond the limit max_angle = 3.1 rad"
+    with pytest.raises(GraphError, match=match):
+        star_chunk_to_local_map(fused, InputLimits(max_angle=3.1))  # the fused angle, not a measured one, is beyond
 
 
 def test_non_star_chunk_needs_lago(make_chunk):

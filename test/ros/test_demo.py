@@ -31,6 +31,8 @@ def test_demo_reports_freshness_throughput_and_memory_in_the_default_mode(tmp_pa
     assert report["freshness_pose_ms_p50"] <= report["freshness_pose_ms_max"]
     assert report["freshness_pose_ms_max"] <= report["freshness_map_ms_max"]  # the pose goes out first
     assert report["submaps_per_second"] > 0 and report["joiner_peak_rss_mb"] > 50.0
+    assert 0.1 < report["joiner_cpu_s"] < 600.0  # the process's CPU, start-up (imports) included
+    assert 0.0 < report["replay_cpu_s"] < 600.0
     assert report["joiner_exit_code"] == 0
 
 

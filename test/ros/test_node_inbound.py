@@ -1,0 +1,73 @@
+"""The node's inbound path: a subscription callback drains its own queue (``take_queued``, ``DRAIN_MAX``)."""
+
+from __future__ import annotations
+
+import time
+import uuid
+from types import SimpleNamespace
+
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from std_msgs.msg import Float64MultiArray
+
+from linear_slam_ros.ros.node import DRAIN_MAX, JoinerNode, take_queued
+from linear_slam_ros.ros.spin import wait_for_subscribers
+
+
+def test_take_queued_takes_what_waits_in_order_then_none(node):
+    topic = f"inbound_{uuid.uuid4().hex[:8]}"
+    qos = QoSProfile(history=HistoryPolicy.KEEP_ALL, reliability=ReliabilityPolicy.RELIABLE)
+    sub = node.create_subscription(Float64MultiArray, topic, lambda _raw: None, qos, raw=True)
+    pub = node.create_publisher(Float64MultiArray, topic, qos)
+    wait_for_subscribers(node, {topic: pub}, timeout_s=10.0)
+    for i in range(5):
+        pub.publish(Float64MultiArray(data=[float(i)]))
+    taken: list[float] = []
+    deadline = time.monotonic() + 10.0
+    while len(taken) < 5 and time.monotonic() < deadline:  # DDS delivers them within milliseconds
+        raw = take_queued(sub)
+        if raw is None:
+            time.sleep(0.01)
+            continue
+        assert isinstance(raw, bytes)  # a raw subscription's serialised message
+        taken.append(deserialize_message(raw, Float64MultiArray).data[0])
+    assert taken == [0.0, 1.0, 2.0, 3.0, 4.0]
+    assert take_queued(sub) is None  # nothing left
+    assert take_queued(None) is None  # not created yet
+    node.destroy_subscription(sub)
+    assert take_queued(sub) is None  # destroyed: nothing to take, no exception
+
+
+class _FakeHandle:
+    """What ``take_queued`` uses of an rclpy subscription handle: a context and ``take_message``."""
+
+    def __init__(self, queue: list[bytes]) -> None:
+        self.queue = queue
+
+    def __enter__(self) -> _FakeHandle:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        return None
+
+    def take_message(self, _msg_type: type, raw: bool) -> tuple[bytes, object] | None:
+        assert raw
+        return (self.queue.pop(0), None) if self.queue else None
+
+
+def test_the_callback_takes_its_message_then_at_most_drain_max_queued_ones_in_order():
+    received: list[tuple[str, bytes, str]] = []
+    fake_node = SimpleNamespace(_receive=lambda topic, raw, robot: received.append((topic, raw, robot)))
+    receive = JoinerNode._receiver(fake_node, "r1/pose_graph", "r1")  # type: ignore[arg-type]
+    assert receive.subscription is None
+    receive(b"first")  # before the subscription is set: only the message given
+    assert received == [("r1/pose_graph", b"first", "r1")]
+    queue = [f"m{i}".encode() for i in range(DRAIN_MAX + 3)]
+    receive.subscription = SimpleNamespace(handle=_FakeHandle(queue), msg_type=Float64MultiArray, raw=True)  # type: ignore[assignment]
+    received.clear()
+    receive(b"given")
+    assert [raw for _, raw, _ in received] == [b"given"] + [f"m{i}".encode() for i in range(DRAIN_MAX)]
+    assert len(queue) == 3  # left for the executor's next round
+    received.clear()
+    receive(b"again")
+    assert [raw for _, raw, _ in received] == [b"again"] + [f"m{i}".encode() for i in range(DRAIN_MAX, DRAIN_MAX + 3)]  # ran dry

@@ -14,8 +14,9 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any
 
 import numpy as np
 import rclpy
@@ -249,23 +250,8 @@ class JoinerNode(Node):
     # ------------------------------------------------------------------ inputs
 
     def _receiver(self, topic: str, robot: str) -> _Receiver:
-        """Return the subscription callback of ``robot``'s ``topic`` (its ``subscription`` is set once created).
-
-        After the message it is given it takes up to :data:`DRAIN_MAX` more from the same
-        subscription's queue, in order, as the executor would have handed them over.
-        """
-
-        def receive(raw: bytes) -> None:
-            self._receive(topic, raw, robot)
-            for _ in range(DRAIN_MAX):
-                queued = take_queued(receiver.subscription)
-                if queued is None:
-                    return
-                self._receive(topic, queued, robot)
-
-        receiver = cast(_Receiver, receive)
-        receiver.subscription = None
-        return receiver
+        """Return the subscription callback of ``robot``'s ``topic`` (its ``subscription`` is set once created)."""
+        return _Receiver(self._receive, topic, robot)
 
     def _receive(self, topic: str, raw: bytes, robot: str = "") -> None:
         """Decode an inbound message of ``robot``, journal it (with ``state_dir``), then offer it to the joiner."""
@@ -799,12 +785,24 @@ class JoinerNode(Node):
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 
-class _Receiver(Protocol):
-    """An inbound subscription's callback, which knows its subscription."""
+class _Receiver:
+    """An inbound subscription's callback, which knows its subscription.
 
-    subscription: Subscription | None
+    After the message it is given it takes up to :data:`DRAIN_MAX` more from the same
+    subscription's queue, in order, as the executor would have handed them over.
+    """
 
-    def __call__(self, raw: bytes) -> None: ...
+    def __init__(self, receive: Callable[[str, bytes, str], None], topic: str, robot: str) -> None:
+        self._receive, self.topic, self.robot = receive, topic, robot
+        self.subscription: Subscription | None = None
+
+    def __call__(self, raw: bytes) -> None:
+        self._receive(self.topic, raw, self.robot)
+        for _ in range(DRAIN_MAX):
+            queued = take_queued(self.subscription)
+            if queued is None:
+                return
+            self._receive(self.topic, queued, self.robot)
 
 
 def take_queued(subscription: Subscription | None) -> Any | None:

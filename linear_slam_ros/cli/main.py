@@ -231,6 +231,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     run: JoinRun | None = None
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
     islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
+    held_left = 0  # forward loop closures still held at the end (their pose never reached)
     if args.initial_state is not None or args.save_state is not None or gate is not None or sources.needs_joiner:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
         before = initial.state.relabels if initial is not None else None
@@ -240,6 +241,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
                                     joined_at)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
+        held_left = len(saved.state.held)
         islands = {"n_islands": len(summary), "island_sizes": sorted((i.n_submaps for i in summary), reverse=True)}
         if len(summary) > 1:
             logger.warning("%s: the submaps form %d islands of %s submaps; the results hold the main island (the "
@@ -264,7 +266,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         if gate is not None:
             report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
                            "reinitialised": [r.as_dict() for r in reinitialised],
-                           "n_reinitialised": len(reinitialised)})
+                           "n_reinitialised": len(reinitialised), "n_held": held_left})
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
 from linear_slam_ros.core.frames import estimate_in_frame
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.islands import (
@@ -40,6 +40,7 @@ from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.chain import compose
 from linear_slam_ros.joining.divide_conquer import OnlineDCState
 from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap, online_dc_holds
+from linear_slam_ros.joining.hold import HeldClosure, split_forward
 from linear_slam_ros.joining.reinit import Reinitialisation, Relabels
 
 logger = logging.getLogger(__name__)
@@ -65,6 +66,10 @@ class JoinerState:
             scaled by it. One for the whole map, whichever robot a submap comes from.
         relabels: the features the gate re-initialised (their front-end ids now name new
             landmarks) and those it suspects (:class:`~linear_slam_ros.joining.reinit.Relabels`).
+        hold_closures: forward loop closures are held back until the chain reaches their pose
+            (:func:`hold_step`; the joiner sets it, with the gate on by default).
+        held: the forward loop closures held back, in arrival order
+            (:class:`~linear_slam_ros.joining.hold.HeldClosure`).
     """
 
     method: JoinMethod
@@ -76,6 +81,8 @@ class JoinerState:
     dim: int | None = None
     variance: VarianceFactor = field(default_factory=VarianceFactor)
     relabels: Relabels = field(default_factory=Relabels)
+    hold_closures: bool = False
+    held: tuple[HeldClosure, ...] = ()
 
     @property
     def strategy(self) -> AnyStrategy:
@@ -204,6 +211,58 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
     return joined_state.with_stream(robot, next_seq=seq + 1, last_seq=seq, chain=target)
 
 
+def hold_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -> tuple[JoinerState, LocalMap | None]:
+    """Hold a submap's forward loop closures back (:mod:`~linear_slam_ros.joining.hold`): a pure function of ``(state, submap)``.
+
+    With ``state.hold_closures`` off, returns ``(state, submap)``. Else the uncoupled pose variables
+    of ``submap`` that the chain it continues does not hold (and that are not its end pose) go to
+    ``state.held``; strategies that cannot tell cheaply which variables the map holds
+    (:meth:`~linear_slam_ros.joiner.strategy.JoinStrategy.holds` ``None``) hold nothing.
+
+    Returns:
+        The state with the new closures held, and what is left of the submap to join (``None``: nothing).
+    """
+    if not state.hold_closures:
+        return state, submap
+    joined = gate_chain(state, submap, robot) if state.n_joined else None
+    strategy = state.strategy
+    rest, held = split_forward(
+        submap, lambda key: joined is not None and strategy.holds(joined, key) is not False, seq, robot
+    )
+    return (replace(state, held=state.held + held) if held else state), rest
+
+
+def due_closures(state: JoinerState, robot: str = "") -> tuple[JoinerState, tuple[HeldClosure, ...]]:
+    """Take the held closures whose pose is the end of ``robot``'s chain (just reached) off ``state.held``."""
+    chain = state.stream(robot).chain
+    end = state.chains[chain].end_id if chain >= 0 else None
+    due = tuple(h for h in state.held if h.target == end)
+    if not due:
+        return state, ()
+    return replace(state, held=tuple(h for h in state.held if h.target != end)), due
+
+
+def join_held(state: JoinerState, closure: LocalMap, robot: str = "") -> JoinerState:
+    """Join a held closure (or what the gate left of it) into ``robot``'s chain, which ends at its frame pose.
+
+    A pure function of ``(state, closure)``; no sequence number is used and ``n_joined`` (submaps)
+    does not change.
+
+    Raises:
+        FrameError: the chain does not end at the closure's frame pose.
+    """
+    index = state.stream(robot).chain
+    chain = state.chains[index] if index >= 0 else None
+    if chain is None or chain.end_id != closure.frame_id:
+        raise FrameError(
+            f"held closure {closure.name!r} is in the frame of pose {closure.frame_id}, not the end of the chain of "
+            f"robot {robot!r} (pose {None if chain is None else chain.end_id})"
+        )
+    chains = list(state.chains)
+    chains[index] = replace(chain, joined=state.strategy.step(chain.joined, closure))
+    return replace(state, chains=tuple(chains))
+
+
 def gate_chain(state: JoinerState, submap: LocalMap, robot: str = "") -> Any | None:
     """Return the strategy state of the chain ``submap`` would continue (``None``: it starts an island)."""
     candidates = route(state.chains, submap, robot, state.stream(robot).chain)
@@ -266,6 +325,79 @@ class GateRecord:
         """JSON-ready: ``{"submap", "name", "variables", "kinds", "nis", "dof", "threshold", "rejected"}``."""
         return {"submap": self.submap, "name": self.name, "variables": list(self.variables), "kinds": list(self.kinds),
                 "nis": self.nis, "dof": self.dof, "threshold": self.threshold, "rejected": self.rejected}
+
+
+@dataclass(frozen=True)
+class SubmapStep:
+    """What :func:`submap_step` did with one submap.
+
+    Attributes:
+        state: the state after it.
+        joined: whether anything of the submap was joined (else its sequence number is used up,
+            and the map is unchanged but for held closures and the gate's relabels).
+        result: the gate's decision on the submap (``None``: no gate, or nothing left after holding).
+        released: the held closures whose pose the submap reached, in order, each with the gate's
+            decision (``None``: no gate); those in :attr:`failed` are not among them.
+        failed: held closures that could not be joined, with why (dropped).
+    """
+
+    state: JoinerState
+    joined: bool
+    result: GateResult | None = None
+    released: tuple[tuple[HeldClosure, GateResult | None], ...] = ()
+    failed: tuple[tuple[HeldClosure, str], ...] = ()
+
+
+def _fuse(
+    state: JoinerState, submap: LocalMap, probability: float | None, join: Callable[[JoinerState, LocalMap], JoinerState],
+    robot: str,
+) -> tuple[JoinerState, GateResult | None]:
+    """Gate ``submap`` (``probability``: the gate's, ``None``/0: none) and ``join`` what passes.
+
+    With nothing left to join, only the state's relabels change (the caller uses up the sequence number).
+    """
+    if not probability:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids
+        return join(state, state.relabels.apply(submap) if state.relabels.aliases else submap), None
+    result = gate_step(state, submap, probability, robot)
+    if result.submap is None:
+        return replace(state, relabels=state.relabels.after(result)), result
+    state = join(state, result.submap)  # what the gate let through is now in the map: it counts in s²
+    return replace(state, variance=state.variance.updated(result), relabels=state.relabels.after(result)), result
+
+
+def submap_step(
+    state: JoinerState, submap: LocalMap, seq: int, robot: str = "", probability: float | None = None
+) -> SubmapStep:
+    """Hold, gate and join one submap, then the held closures it reaches: a pure function of ``(state, submap)``.
+
+    The submap's forward loop closures are held back (:func:`hold_step`, when
+    ``state.hold_closures``); the rest goes through the χ² gate at ``probability`` (:func:`gate_step`;
+    ``None`` or 0: no gate) and is joined (:func:`join_step`); then the held closures whose pose is
+    the new end of the chain are gated and joined the same way (:func:`due_closures`,
+    :func:`join_held`). A held closure that fails to join is dropped and listed in
+    :attr:`SubmapStep.failed`: the submap stays joined.
+
+    Raises:
+        LinearSlamError: the submap cannot be joined (nothing changes).
+        numpy.linalg.LinAlgError: its numbers make a system singular (nothing changes).
+    """
+    state, rest = hold_step(state, submap, seq, robot)
+    result = None
+    if rest is not None:
+        state, result = _fuse(state, rest, probability, lambda s, m: join_step(s, m, seq, robot), robot)
+    if rest is None or (result is not None and result.submap is None):
+        return SubmapStep(state.with_stream(robot, next_seq=seq + 1, last_seq=seq), False, result)
+    state, due = due_closures(state, robot)
+    released: list[tuple[HeldClosure, GateResult | None]] = []
+    failed: list[tuple[HeldClosure, str]] = []
+    for closure in due:
+        try:
+            state, decision = _fuse(state, closure.closure, probability, lambda s, m: join_held(s, m, robot), robot)
+        except (LinearSlamError, np.linalg.LinAlgError) as exc:
+            failed.append((closure, str(exc)))
+            continue
+        released.append((closure, decision))
+    return SubmapStep(state, True, result, tuple(released), tuple(failed))
 
 
 def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> Any | None:
@@ -410,6 +542,12 @@ class Joiner:
             and counted (and reported) by :meth:`reject` under reason ``gated``, so a submap with
             gated variables counts as joined and under ``gated``. A submap left with nothing uses up
             its sequence number and leaves the map unchanged.
+        hold_closures: hold forward loop closures back until the chain reaches their pose, so that
+            the gate tests them then (:func:`hold_step`, :mod:`~linear_slam_ros.joining.hold`);
+            ``None``: when the gate is on. Each is joined (through the gate) right after the submap
+            whose end pose it measures, as part of joining that submap; its gate decisions are
+            recorded under its own submap's sequence number. A closure that cannot be joined then
+            is counted under ``held_closure``.
         gated: every gate decision that kept something out of the map, in order.
         reinitialised: each feature the gate re-initialised (:mod:`~linear_slam_ros.joining.reinit`), in order.
         state: the current state (:meth:`restore` a saved one).
@@ -429,6 +567,7 @@ class Joiner:
     defer_above: int | None = None
     worker: MergeWorker | None = None
     gate_probability: float | None = None
+    hold_closures: bool | None = None
     state: JoinerState = field(init=False)
     gated: list[GateRecord] = field(default_factory=list)
     reinitialised: list[Reinitialisation] = field(default_factory=list)
@@ -451,10 +590,11 @@ class Joiner:
         CACHE.anchors.clear()  # they place chains of a joiner's map: one joiner per process
 
     def _scheduled(self, state: JoinerState) -> JoinerState:
-        """Return ``state`` set to defer its large joins as this joiner is configured to."""
+        """Return ``state`` set to defer its large joins, and to hold closures, as this joiner is configured to."""
         strategy = state.strategy
         chains = tuple(replace(c, joined=strategy.defer(c.joined, self.defer_above)) for c in state.chains)
-        return replace(state, chains=chains, defer_above=self.defer_above)
+        holding = self.hold_closures if self.hold_closures is not None else bool(self.gate_probability)
+        return replace(state, chains=chains, defer_above=self.defer_above, hold_closures=holding)
 
     def reset(self) -> None:
         """Forget every submap, count and buffered message (queued background joins included)."""
@@ -644,37 +784,37 @@ class Joiner:
             return []
         t0 = time.perf_counter()
         try:
-            result = None
-            if self.gate_probability:
-                result = gate_step(self.state, submap, self.gate_probability, robot)
-                if result.submap is None:  # nothing left to join: its number is used, the map unchanged
-                    self._record_gate(result, submap, seq, robot)
-                    self.state = replace(self.state.with_stream(robot, next_seq=seq + 1, last_seq=seq),
-                                         relabels=self.state.relabels.after(result))
-                    self._progress_at[robot] = self.clock()
-                    return []
-                joined = result.submap
-            else:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids
-                joined = self.state.relabels.apply(submap) if self.state.relabels.aliases else submap
-            self.state = join_step(self.state, joined, seq, robot)
-            if result is not None:  # what the gate let through is now in the map: it counts in s²
-                self.state = replace(self.state, variance=self.state.variance.updated(result),
-                                     relabels=self.state.relabels.after(result))
-                self._record_gate(result, submap, seq, robot)
+            step = submap_step(self.state, submap, seq, robot, self.gate_probability)
         except (LinearSlamError, np.linalg.LinAlgError) as exc:  # numpy's: a system the numbers make singular
             self.reject(type(exc).__name__, f"{self._who(seq, robot)} rejected: {exc}")
+            return []
+        self.state = step.state
+        if step.result is not None:
+            self._record_gate(step.result, submap, seq, robot)
+        for closure, result in step.released:
+            if result is not None:
+                self._record_gate(result, closure.closure, closure.seq, closure.robot, closure)
+        for closure, why in step.failed:
+            self.reject("held_closure", f"{closure.describe()}, held until the chain reached pose {closure.target}, "
+                                        f"not joined: {why}")
+        self._progress_at[robot] = self.clock()
+        if not step.joined:
             return []
         if self.worker is not None:
             chain = self.state.chains[self.state.stream(robot).chain]
             self.worker.submit(self.state.strategy.pending(chain.joined))
         self.join_seconds.append(time.perf_counter() - t0)
-        self._progress_at[robot] = self.clock()
         if self.on_join is not None:
             self.on_join(robot, seq)
         return [seq]
 
-    def _record_gate(self, result: GateResult, submap: LocalMap, seq: int, robot: str) -> None:
-        """Record and report what the gate did to a submap, once that is settled (joined, or nothing left to join)."""
+    def _record_gate(
+        self, result: GateResult, submap: LocalMap, seq: int, robot: str, closure: HeldClosure | None = None
+    ) -> None:
+        """Record and report what the gate did to a submap, once that is settled (joined, or nothing left to join).
+
+        For a held ``closure``, the record names its submap and the pose it measured (``closure.target``).
+        """
         for front, landmark in result.reinitialised:
             self.reinitialised.append(Reinitialisation(seq, robot, front, landmark, self.state.n_joined))
             logger.warning("%s: feature %d failed the gate again after a sighting of it was split off: re-initialised "
@@ -682,12 +822,15 @@ class Joiner:
         if result.passed:
             return
         variables = result.split if not result.rejected else result.worst
-        record = GateRecord(
-            seq, submap.name, tuple(v.var_id for v in variables), tuple(v.kind for v in variables), result.nis,
-            result.dof, result.threshold, result.rejected,
-        )
+        ids, kinds = tuple(v.var_id for v in variables), tuple(v.kind for v in variables)
+        label = self._who(seq, robot) + f" ({submap.name!r})"
+        if closure is not None:  # its one variable is the submap's frame pose, seen from the pose it measured
+            ids, kinds = (closure.target,), (POSE,)
+            label = f"{closure.describe()}, held until the chain reached pose {closure.target}"
+        record = GateRecord(seq, closure.name if closure is not None else submap.name, ids, kinds, result.nis,
+                            result.dof, result.threshold, result.rejected)
         self.gated.append(record)
-        self.reject("gated", result.message(self._who(seq, robot) + f" ({submap.name!r})"))
+        self.reject("gated", result.message(label))
 
     def stats(self) -> dict[str, float]:
         """Return counts, join-latency figures (ms) and the number of islands for the global map message."""

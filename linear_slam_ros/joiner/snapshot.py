@@ -59,18 +59,19 @@ from linear_slam_ros.joiner.joiner import JoinerState, SavedJoiner
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
 from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState
 from linear_slam_ros.joining.gate import VarianceFactor
+from linear_slam_ros.joining.hold import HeldClosure
 from linear_slam_ros.joining.reinit import Relabels
 from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 
 logger = logging.getLogger(__name__)
 
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 6
+FORMAT_VERSION = 7
 """Bumped whenever the tree of a state changes; a file of another version is refused, but for the
 versions in :data:`MIGRATED` (2: chains and streams, for islands and several robots; 3: the χ² gate's
 variance factor, ``JoinerState.variance``; 4: deferred merges and blob references; 5: the variance
 factor's ``tail_confidence`` instead of ``prior_submaps``; 6: the gate's re-initialised features,
-``JoinerState.relabels``)."""
+``JoinerState.relabels``; 7: forward loop closures held back, ``JoinerState.hold_closures`` and ``held``)."""
 
 _PRIOR_SUBMAPS_DROPPED = (
     "the χ² gate's tail calibration is an upper confidence bound since version 5: the file's "
@@ -81,6 +82,7 @@ MIGRATED: dict[int, str | None] = {
     3: _PRIOR_SUBMAPS_DROPPED,
     4: _PRIOR_SUBMAPS_DROPPED,
     5: None,
+    6: None,
 }
 """Older versions still read, and what reading them changes (``None``: nothing, no warning): a
 version 2 tree has no ``JoinerState.variance``, which takes its default
@@ -88,7 +90,8 @@ version 2 tree has no ``JoinerState.variance``, which takes its default
 variance factor's ``prior_submaps`` is dropped (:func:`_variance_factor`); everything else is
 read exactly. A version 3 tree is a version 4 tree without deferred merges or blobs; a version 5
 tree has no ``JoinerState.relabels``, which takes its default (no feature re-initialised: the gate
-re-initialised none before version 6)."""
+re-initialised none before version 6); a version 6 tree has no ``JoinerState.hold_closures`` nor
+``held``, which take their defaults (nothing held: closures were never held before version 7)."""
 
 BLOB_MIN_BYTES = 256 << 10
 """Maps of at least this many bytes of arrays are written as blobs when a :class:`BlobStore` is given."""
@@ -117,6 +120,7 @@ CLASSES: dict[str, Callable[..., Any]] = {
     "CovarianceMap": CovarianceMap,
     "VarianceFactor": VarianceFactor,
     "Relabels": Relabels,
+    "HeldClosure": HeldClosure,
     "LocalMap": LocalMap.trusted,  # computed by the core: not validated again
 }
 """Dataclasses a state file may hold, and how each is rebuilt from its fields."""

@@ -149,6 +149,13 @@ class JoinStrategy(Protocol[StateT, ResultT]):
         """
         ...
 
+    def holds(self, state: StateT, key: int) -> bool | None:
+        """Whether the joined map holds the variable of ``key``, cheaply (no join, no solve).
+
+        ``None`` when the strategy cannot tell cheaply (those that cannot gate).
+        """
+        ...
+
     def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:
         """Join a whole sequence, timing each step.
 
@@ -204,6 +211,10 @@ class FoldStrategy(Generic[StateT, ResultT]):
 
     def marginal(self, state: StateT, keys: npt.NDArray[np.int64]) -> Marginal | None:
         """Return ``None``: this strategy cannot gate (see :meth:`JoinStrategy.marginal`)."""
+        return None
+
+    def holds(self, state: StateT, key: int) -> bool | None:
+        """Return ``None``: not known cheaply (see :meth:`JoinStrategy.holds`)."""
         return None
 
     def run(self, maps: Sequence[LocalMap], progress: Progress | None = None) -> tuple[ResultT, list[float]]:

@@ -563,9 +563,13 @@ def online_dc_marginal_by_entries(
 
 
 def online_dc_holds(state: OnlineDCState, keys: IntArray) -> bool:
-    """Whether the online D&C map holds any of ``keys`` (key sets of the stack's parts: no join, no solve)."""
+    """Whether the online D&C map holds any of ``keys`` (key sets and frame poses of the stack's parts: no join, no solve).
+
+    A part's frame pose counts: the merged map holds it (a part in the frame of pose 2, after
+    parts that end there, is how a held loop closure to pose 2 finds it in the map).
+    """
     wanted = np.asarray(keys).tolist()
-    return any(k in leaf.key_set for leaf in leaf_maps(state.stack) for k in wanted)
+    return any(k in leaf.key_set or k == pose_key(leaf.frame_id) for leaf in leaf_maps(state.stack) for k in wanted)
 
 
 # --------------------------------------------------------------------------- the test

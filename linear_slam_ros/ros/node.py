@@ -770,6 +770,7 @@ class JoinerNode(Node):
         status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
         status.values.append(KeyValue(key="n_gated", value=str(len(self.joiner.gated))))
         status.values.append(KeyValue(key="n_reinitialised", value=str(len(self.joiner.reinitialised))))
+        status.values.append(KeyValue(key="n_held", value=str(len(state.held))))
         if self.joiner.gated:
             last = self.joiner.gated[-1]
             status.values.append(KeyValue(

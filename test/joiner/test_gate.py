@@ -153,6 +153,7 @@ def test_cli_report_lists_the_gate_decisions(tmp_path, monkeypatch):
     assert report["gate_probability"] == 0.999999
     assert report["n_gated"] == len(report["gated"])
     assert report["n_reinitialised"] == len(report["reinitialised"])
+    assert report["n_held"] == 0  # its submaps hold features and poses together: no closure to hold
     for g in report["gated"]:
         assert set(g) >= {"submap", "variables", "nis", "dof"}
     assert main(["join", archive, "--method", "dc", "--gate-probability", "0.99", "--out", str(tmp_path / "dc")]) == 2

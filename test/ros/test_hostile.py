@@ -1191,6 +1191,7 @@ def test_stream_survives_every_hostile_message(name, node, start_joiner, read_be
     assert counted == rejected
     assert run.diag, "no /diagnostics from the node"
     assert float(run.diag.get("n_rejected", "nan")) == rejected and int(run.diag.get("n_skipped", "-1")) == skipped, run.diag
+    assert run.diag.get("n_held") == "0", run.diag  # no gate: no loop closure held back
     assert run.answered, "the node did not answer a parameter request at the end"
     assert run.exit_code == 0, f"exit code {run.exit_code}:\n{run.output[-3000:]}"
 

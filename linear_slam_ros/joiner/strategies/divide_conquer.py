@@ -23,7 +23,7 @@ from linear_slam_ros.joining.divide_conquer import (
     online_dc_step,
     pending_joins,
 )
-from linear_slam_ros.joining.gate import EntryCache, Marginal, online_dc_marginal_by_entries
+from linear_slam_ros.joining.gate import EntryCache, Marginal, online_dc_holds, online_dc_marginal_by_entries
 
 
 class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
@@ -80,6 +80,10 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
         not forced (their inputs are folded instead).
         """
         return online_dc_marginal_by_entries(state, keys, self._entries)
+
+    def holds(self, state: OnlineDCState, key: int) -> bool:
+        """Whether a part of the stack holds the variable of ``key`` (their key sets)."""
+        return online_dc_holds(state, np.array([key], dtype=np.int64))
 
 
 class BatchDC(BatchStrategy[LocalMap]):

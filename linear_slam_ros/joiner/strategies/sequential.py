@@ -77,3 +77,7 @@ class Sequential(FoldStrategy[SequentialState, LocalMap]):
     def marginal(self, state: SequentialState, keys: npt.NDArray[np.int64]) -> Marginal | None:
         """Return the marginal of ``keys`` from the covariance form: ``S_cc = Q_c S~_cc Q_c^T``, O(c^2)."""
         return None if state.global_map is None else Marginal.of_covariance_map(state.global_map, keys)
+
+    def holds(self, state: SequentialState, key: int) -> bool:
+        """Whether the global map holds the variable of ``key`` (its key set)."""
+        return state.global_map is not None and key in state.global_map.key_set

@@ -1,0 +1,157 @@
+"""Forward loop closures held back by the joiner until the chain reaches their pose, and gated then."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.local_map import POSE, LocalMap
+from linear_slam_ros.joiner.joiner import Joiner, due_closures, global_result, join_held, submap_step
+from linear_slam_ros.joiner.snapshot import decode_state, encode_state
+from linear_slam_ros.joiner.strategy import JoinMethod
+from linear_slam_ros.joining.divide_conquer import online_dc_result
+
+GATE = 0.99999999
+
+
+def _stars(n: int = 30, seed: int = 5, lag: int = 3) -> list[LocalMap]:
+    """Noisy 2D stars from pose k: odometry to k + 1 (end pose), a loop closure to k + lag while the chain reaches it."""
+    rng = np.random.default_rng(seed)
+    maps = []
+    for k in range(n):
+        x = np.array([1.0, 0.0, 0.0, float(lag), 0.0, 0.0]) + rng.normal(scale=0.01, size=6)
+        m = 2 if k + lag <= n else 1
+        maps.append(LocalMap(2, k, k + 1, np.array([k + 1, k + lag])[:m], np.full(m, POSE, dtype=np.int8), x[:3 * m],
+                             1e4 * np.eye(3 * m), f"star_{k}"))
+    return maps
+
+
+def _run(joiner: Joiner, maps: list[LocalMap]) -> Joiner:
+    for seq, m in enumerate(maps, start=1):
+        assert joiner.offer(m, seq) == [seq]
+    return joiner
+
+
+def test_with_the_gate_closures_are_held_until_the_chain_reaches_them_and_then_joined():
+    maps = _stars()
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    assert j.state.hold_closures  # holding follows the gate by default
+    _run(j, maps[:2])
+    assert [(h.seq, h.origin, h.target) for h in j.state.held] == [(1, 0, 3), (2, 1, 4)]
+    j.offer(maps[2], 3)  # its end pose is 3: the closure 0 -> 3 is joined with it
+    assert [(h.seq, h.target) for h in j.state.held] == [(2, 4), (3, 5)]
+    for seq in range(4, len(maps) + 1):
+        j.offer(maps[seq - 1], seq)
+    assert j.state.held == () and j.state.n_joined == len(maps) and j.gated == [] and not j.rejected
+    plain = _run(Joiner(JoinMethod.ONLINE_DC, hold_closures=True), maps)  # holding without the gate: the same map
+    assert not _run(Joiner(JoinMethod.ONLINE_DC), maps).state.hold_closures
+    a, b = global_result(j.state), global_result(plain.state)
+    assert a.keys.tolist() == b.keys.tolist() and np.array_equal(a.x, b.x)
+
+
+def test_the_gate_on_without_holding_fuses_closures_on_arrival():
+    j = _run(Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE, hold_closures=False), _stars()[:5])
+    assert j.state.held == () and not j.state.hold_closures
+    assert global_result(j.state).has_pose(7)  # the closure 4 -> 7 brought pose 7 in ahead of the chain
+
+
+def test_a_wrong_closure_is_gated_when_the_chain_reaches_its_pose_and_the_map_is_the_one_without_it():
+    maps = _stars()
+    bad = list(maps)
+    x = maps[9].x.copy()
+    x[3:5] += [1.5, -1.0]  # the closure 9 -> 12 moved by 1.8 m
+    x[5] += np.deg2rad(20.0)
+    bad[9] = maps[9].replace(x=x)
+    without = list(maps)
+    without[9] = LocalMap(2, 9, 10, np.array([10]), np.array([POSE], dtype=np.int8), maps[9].x[:3], 1e4 * np.eye(3),
+                          "star_9")
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    messages: list[tuple[str, str]] = []
+    j.on_reject = lambda reason, message: messages.append((reason, message))
+    _run(j, bad)
+    (record,) = j.gated
+    assert (record.submap, record.name, record.variables, record.kinds, record.rejected) == (10, "star_9", (12,), (POSE,), False)
+    assert record.dof == 3 and record.nis > record.threshold
+    assert j.rejected == {"gated": 1} and j.state.n_joined == len(maps)
+    (reason, message), = messages
+    assert reason == "gated"
+    assert "loop closure 9 -> 12 of submap seq 10 ('star_9'), held until the chain reached pose 12" in message
+    ref = _run(Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE), without)
+    a, b = global_result(j.state), global_result(ref.state)
+    assert a.keys.tolist() == b.keys.tolist() and np.array_equal(a.x, b.x)
+
+
+def test_a_closure_that_cannot_be_joined_is_dropped_and_counted_and_its_submap_stays(monkeypatch):
+    import linear_slam_ros.joiner.joiner as joiner_module
+
+    maps = _stars(8)
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    _run(j, maps[:2])
+
+    def refuse(state, closure, robot=""):
+        raise FrameError(f"held closure {closure.name!r} refused")
+
+    monkeypatch.setattr(joiner_module, "join_held", refuse)
+    messages: list[tuple[str, str]] = []
+    j.on_reject = lambda reason, message: messages.append((reason, message))
+    assert j.offer(maps[2], 3) == [3]  # reaches pose 3: the closure 0 -> 3 fails, the submap is joined
+    assert j.state.n_joined == 3 and j.rejected == {"held_closure": 1}
+    (reason, message), = messages
+    assert reason == "held_closure"
+    assert re.search(r"loop closure 0 -> 3 of submap seq 1 \('star_0'\), held until the chain reached pose 3, not "
+                     r"joined: held closure 'star_0/closure_3' refused", message)
+    assert [h.target for h in j.state.held] == [4, 5]
+
+
+def test_join_held_refuses_a_closure_not_at_the_chain_end_and_due_closures_needs_a_chain():
+    maps = _stars(8)
+    j = _run(Joiner(JoinMethod.ONLINE_DC, hold_closures=True), maps[:2])
+    closure = j.state.held[1].closure  # 1 -> 4, in pose 4's frame: the chain ends at pose 2
+    with pytest.raises(FrameError, match=r"held closure 'star_1/closure_4' is in the frame of pose 4, not the end of "
+                                         r"the chain of robot '' \(pose 2\)"):
+        join_held(j.state, closure)
+    with pytest.raises(FrameError, match=r"not the end of the chain of robot 'other' \(pose None\)"):
+        join_held(j.state, closure, "other")
+    assert due_closures(j.state, "other") == (j.state, ())
+
+
+def test_a_submap_step_is_pure_and_a_held_state_saves_and_restores_exactly():
+    maps = _stars(12)
+    j = _run(Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE), maps[:5])
+    state = j.state
+    step = submap_step(state, maps[5], 6, "", GATE)
+    again = submap_step(state, maps[5], 6, "", GATE)
+    assert j.state is state and [h.target for h in state.held] == [6, 7]  # the input state is untouched
+    assert [(c.seq, c.target) for c, _ in step.released] == [(4, 6)] and step.joined and step.failed == ()
+    assert np.array_equal(online_dc_result(step.state.joined).x, online_dc_result(again.state.joined).x)
+    back = decode_state(encode_state(j.save()))
+    assert back.state.hold_closures and [(h.seq, h.origin, h.target, h.name) for h in back.state.held] == [
+        (h.seq, h.origin, h.target, h.name) for h in state.held]
+    assert all(np.array_equal(a.closure.x, b.closure.x) and np.array_equal(a.closure.info, b.closure.info)
+               for a, b in zip(back.state.held, state.held, strict=True))
+    restored = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    restored.restore(back)
+    for seq in range(6, len(maps) + 1):
+        j.offer(maps[seq - 1], seq)
+        restored.offer(maps[seq - 1], seq)
+    assert np.array_equal(global_result(j.state).x, global_result(restored.state).x)
+
+
+def test_a_version_6_file_is_read_with_nothing_held(caplog):
+    from test_snapshot import _rewritten
+
+    j = _run(Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE), _stars(6)[:2])
+
+    def as_version_6(fields):
+        fields.pop("hold_closures")
+        fields.pop("held")
+
+    back = decode_state(_rewritten(j, as_version_6, 6))
+    assert back.state.held == () and not back.state.hold_closures
+    assert back.state.variance == j.state.variance and back.state.n_joined == 2
+    assert np.array_equal(online_dc_result(back.state.joined).x, online_dc_result(j.state.joined).x)
+    assert "format version 6" not in caplog.text  # nothing is lost: no warning
+

@@ -198,25 +198,40 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
                 "map (a submap was lost, or the stream restarted); it joins the others when they share a pose or "
                 "enough features", seq, submap.name, robot, target, submap.frame_id,
             )
-    streams = state.streams
-    if islands and len(chains) > 1:
-        labels = [c.island for c in chains]
-        chains = link_islands(chains, target, submap, strategy.result, CACHE)
-        if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
-            active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
-            chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
-            target = where[target]
-            streams = tuple(replace(s, chain=where[s.chain]) if s.chain >= 0 else s for s in streams)
+    chains, streams, target = _linked(state, chains, target, submap, robot) if islands else (chains, state.streams, target)
     joined_state = replace(state, chains=tuple(chains), streams=streams, n_joined=stamp, dim=submap.dim)
     return joined_state.with_stream(robot, next_seq=seq + 1, last_seq=seq, chain=target)
+
+
+def _linked(
+    state: JoinerState, chains: list[Chain], target: int, submap: LocalMap, robot: str
+) -> tuple[list[Chain], tuple[Stream, ...], int]:
+    """Link the islands ``submap`` (just joined into chain ``target`` of ``chains``) connects, and collapse frozen chains.
+
+    Returns:
+        The chains, the streams (their chain indices moved with the collapse) and ``target``'s new index.
+    """
+    streams = state.streams
+    if len(chains) < 2:
+        return chains, streams, target
+    strategy = state.strategy
+    labels = [c.island for c in chains]
+    chains = link_islands(chains, target, submap, strategy.result, CACHE)
+    if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
+        active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
+        chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
+        target = where[target]
+        streams = tuple(replace(s, chain=where[s.chain]) if s.chain >= 0 else s for s in streams)
+    return chains, streams, target
 
 
 def hold_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -> tuple[JoinerState, LocalMap | None]:
     """Hold a submap's forward loop closures back (:mod:`~linear_slam_ros.joining.hold`): a pure function of ``(state, submap)``.
 
     With ``state.hold_closures`` off, returns ``(state, submap)``. Else the uncoupled pose variables
-    of ``submap`` that the chain it continues does not hold (and that are not its end pose) go to
-    ``state.held``; strategies that cannot tell cheaply which variables the map holds
+    of ``submap`` that no chain holds (and that are not its end pose) go to ``state.held`` (a pose
+    of another island's chain is not held: the closure links the islands now); strategies that
+    cannot tell cheaply which variables the map holds
     (:meth:`~linear_slam_ros.joiner.strategy.JoinStrategy.holds` ``None``) hold nothing.
 
     Returns:
@@ -224,10 +239,9 @@ def hold_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
     """
     if not state.hold_closures:
         return state, submap
-    joined = gate_chain(state, submap, robot) if state.n_joined else None
     strategy = state.strategy
     rest, held = split_forward(
-        submap, lambda key: joined is not None and strategy.holds(joined, key) is not False, seq, robot
+        submap, lambda key: any(strategy.holds(c.joined, key) is not False for c in state.chains), seq, robot
     )
     return (replace(state, held=state.held + held) if held else state), rest
 
@@ -246,7 +260,8 @@ def join_held(state: JoinerState, closure: LocalMap, robot: str = "") -> JoinerS
     """Join a held closure (or what the gate left of it) into ``robot``'s chain, which ends at its frame pose.
 
     A pure function of ``(state, closure)``; no sequence number is used and ``n_joined`` (submaps)
-    does not change.
+    does not change. A closure from a pose of another island links the two, as a submap does
+    (:func:`~linear_slam_ros.joiner.islands.link_islands`).
 
     Raises:
         FrameError: the chain does not end at the closure's frame pose.
@@ -260,7 +275,10 @@ def join_held(state: JoinerState, closure: LocalMap, robot: str = "") -> JoinerS
         )
     chains = list(state.chains)
     chains[index] = replace(chain, joined=state.strategy.step(chain.joined, closure))
-    return replace(state, chains=tuple(chains))
+    if not state.strategy.online or state.strategy.result_type is not LocalMap:
+        return replace(state, chains=tuple(chains))
+    chains, streams, index = _linked(state, chains, index, closure, robot)  # a closure from another island links it
+    return replace(state, chains=tuple(chains), streams=streams).with_stream(robot, chain=index)
 
 
 def gate_chain(state: JoinerState, submap: LocalMap, robot: str = "") -> Any | None:

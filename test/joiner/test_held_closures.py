@@ -35,9 +35,10 @@ def _run(joiner: Joiner, maps: list[LocalMap]) -> Joiner:
     return joiner
 
 
-def test_with_the_gate_closures_are_held_until_the_chain_reaches_them_and_then_joined():
+@pytest.mark.parametrize("mode", [JoinMethod.ONLINE_DC, JoinMethod.SEQUENTIAL])
+def test_with_the_gate_closures_are_held_until_the_chain_reaches_them_and_then_joined(mode):
     maps = _stars()
-    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    j = Joiner(mode, gate_probability=GATE)
     assert j.state.hold_closures  # holding follows the gate by default
     _run(j, maps[:2])
     assert [(h.seq, h.origin, h.target) for h in j.state.held] == [(1, 0, 3), (2, 1, 4)]
@@ -46,8 +47,8 @@ def test_with_the_gate_closures_are_held_until_the_chain_reaches_them_and_then_j
     for seq in range(4, len(maps) + 1):
         j.offer(maps[seq - 1], seq)
     assert j.state.held == () and j.state.n_joined == len(maps) and j.gated == [] and not j.rejected
-    plain = _run(Joiner(JoinMethod.ONLINE_DC, hold_closures=True), maps)  # holding without the gate: the same map
-    assert not _run(Joiner(JoinMethod.ONLINE_DC), maps).state.hold_closures
+    plain = _run(Joiner(mode, hold_closures=True), maps)  # holding without the gate: the same map
+    assert not _run(Joiner(mode), maps).state.hold_closures
     a, b = global_result(j.state), global_result(plain.state)
     assert a.keys.tolist() == b.keys.tolist() and np.array_equal(a.x, b.x)
 
@@ -155,3 +156,44 @@ def test_a_version_6_file_is_read_with_nothing_held(caplog):
     assert np.array_equal(online_dc_result(back.state.joined).x, online_dc_result(j.state.joined).x)
     assert "format version 6" not in caplog.text  # nothing is lost: no warning
 
+
+
+def _chain(first: int, n: int, closures: dict[int, int] | None = None) -> list[LocalMap]:
+    """Odometry stars from pose ``first`` on (1 m forward each), with loop closures ``{k: target}`` (exact)."""
+    out = []
+    for k in range(first, first + n):
+        target = (closures or {}).get(k)
+        ids = [k + 1] if target is None else [k + 1, target]
+        x = [1.0, 0.0, 0.0] if target is None else [1.0, 0.0, 0.0, float(target - k) if target < 100 else 0.0, 5.0, 0.0]
+        out.append(LocalMap(2, k, k + 1, np.array(ids), np.full(len(ids), POSE, dtype=np.int8), np.array(x),
+                            1e2 * np.eye(3 * len(ids)), f"{first}_{k}"))
+    return out
+
+
+def test_a_held_closure_to_another_robots_pose_links_the_islands_when_that_robot_reaches_it():
+    a = _chain(0, 8, {3: 105})  # robot a's submap from pose 3 closes on pose 105, which robot b reaches later
+    b = _chain(100, 8)
+    j = Joiner(JoinMethod.ONLINE_DC, hold_closures=True)
+    for i in range(8):
+        j.offer(a[i], i + 1, "a")
+        j.offer(b[i], i + 1, "b")
+        if i == 3:
+            assert [(h.robot, h.origin, h.target) for h in j.state.held] == [("a", 3, 105)]
+            assert len(j.state.islands) == 2
+    assert j.state.held == () and len(j.state.islands) == 1 and j.state.n_joined == 16
+    apart = Joiner(JoinMethod.ONLINE_DC, hold_closures=True)
+    for i in range(8):
+        apart.offer(_chain(0, 8)[i], i + 1, "a")
+        apart.offer(b[i], i + 1, "b")
+    assert len(apart.state.islands) == 2  # without the closure the two robots' maps stay apart
+
+
+def test_a_closure_to_a_pose_another_island_already_holds_is_not_held():
+    b = _chain(100, 8)
+    j = Joiner(JoinMethod.ONLINE_DC, hold_closures=True)
+    for i in range(8):
+        j.offer(b[i], i + 1, "b")
+    a = _chain(0, 5, {2: 104})
+    for i in range(5):
+        j.offer(a[i], i + 1, "a")
+    assert j.state.held == () and len(j.state.islands) == 1

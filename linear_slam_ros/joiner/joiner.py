@@ -566,6 +566,9 @@ class Joiner:
             whose end pose it measures, as part of joining that submap; its gate decisions are
             recorded under its own submap's sequence number. A closure that cannot be joined then
             is counted under ``held_closure``.
+        max_held: at most this many closures wait (a closure is about 1 KB); beyond it the oldest
+            is dropped and counted under ``held_closure`` (a front-end closing on poses its robot
+            never reaches cannot grow the state without bound).
         gated: every gate decision that kept something out of the map, in order.
         reinitialised: each feature the gate re-initialised (:mod:`~linear_slam_ros.joining.reinit`), in order.
         state: the current state (:meth:`restore` a saved one).
@@ -586,6 +589,7 @@ class Joiner:
     worker: MergeWorker | None = None
     gate_probability: float | None = None
     hold_closures: bool | None = None
+    max_held: int = 10_000
     state: JoinerState = field(init=False)
     gated: list[GateRecord] = field(default_factory=list)
     reinitialised: list[Reinitialisation] = field(default_factory=list)
@@ -601,6 +605,8 @@ class Joiner:
     _progress_at: collections.defaultdict[str, float] = field(default_factory=lambda: collections.defaultdict(float))
 
     def __post_init__(self) -> None:
+        if self.max_held < 0:
+            raise ConfigError(f"max_held={self.max_held!r} must be >= 0")
         if self.gate_probability is not None and not 0.0 <= self.gate_probability < 1.0:
             raise ConfigError(f"gate_probability={self.gate_probability!r} must be in [0, 1) (0 or None: no gate)")
         self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
@@ -815,6 +821,12 @@ class Joiner:
         for closure, why in step.failed:
             self.reject("held_closure", f"{closure.describe()}, held until the chain reached pose {closure.target}, "
                                         f"not joined: {why}")
+        if len(self.state.held) > self.max_held:
+            dropped = self.state.held[: len(self.state.held) - self.max_held]
+            self.state = replace(self.state, held=self.state.held[len(dropped):])
+            for closure in dropped:
+                self.reject("held_closure", f"{closure.describe()} dropped: more than max_held={self.max_held} closures "
+                                            f"wait for their pose (pose {closure.target} not reached)")
         self._progress_at[robot] = self.clock()
         if not step.joined:
             return []

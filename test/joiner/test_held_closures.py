@@ -197,3 +197,34 @@ def test_a_closure_to_a_pose_another_island_already_holds_is_not_held():
     for i in range(5):
         j.offer(a[i], i + 1, "a")
     assert j.state.held == () and len(j.state.islands) == 1
+
+
+def test_the_fresh_pose_chains_across_a_held_closure():
+    """A released closure is a part of the chain whose end is its frame: the cheap current pose is still the chain's end.
+
+    (Chained along the stack's parts, it is not the joined map's estimate, only near it.)
+    """
+    from linear_slam_ros.joiner.joiner import current_pose
+
+    maps = _stars(12)
+    j = _run(Joiner(JoinMethod.ONLINE_DC, hold_closures=True), maps)
+    fresh = current_pose(j.state)
+    assert fresh is not None and fresh[0] == 12
+    exact = global_result(j.state, "first_pose")
+    assert np.linalg.norm(fresh[1][:2] - exact.pose(12)[:2]) < 0.05 and abs(fresh[1][2] - exact.pose(12)[2]) < 0.05
+
+
+def test_closures_beyond_max_held_are_dropped_oldest_first_and_counted():
+    from linear_slam_ros.core.errors import ConfigError
+
+    maps = _stars(20, lag=8)  # each submap k closes on pose k + 8: up to 7 wait at once
+    j = Joiner(JoinMethod.ONLINE_DC, hold_closures=True, max_held=3)
+    messages: list[tuple[str, str]] = []
+    j.on_reject = lambda reason, message: messages.append((reason, message))
+    _run(j, maps[:5])
+    assert [h.target for h in j.state.held] == [10, 11, 12]
+    assert j.rejected == {"held_closure": 2}
+    assert messages[0] == ("held_closure", "loop closure 0 -> 8 of submap seq 1 ('star_0') dropped: more than "
+                                           "max_held=3 closures wait for their pose (pose 8 not reached)")
+    with pytest.raises(ConfigError, match=r"max_held=-1 must be >= 0"):
+        Joiner(JoinMethod.ONLINE_DC, max_held=-1)

@@ -353,6 +353,19 @@ class LocalMap(VariableLayout):
         unless ``dim`` or ``kinds`` change)."""
         return LocalMap.trusted(**replaced_fields(self, changes))
 
+    def restricted(self, var_indices: npt.ArrayLike, info: InfoMatrix) -> LocalMap:
+        """Return the map of the variables ``var_indices`` (estimate unchanged) with information ``info``.
+
+        Its end pose stays when it is among them (or is the frame pose); else it has none.
+        ``info`` (of their scalars, in order) is the caller's: cut out, or marginalised.
+        """
+        keep = np.asarray(var_indices, dtype=np.int64)
+        ids, kinds = self.ids[keep], self.kinds[keep]
+        end_id = self.end_id
+        if end_id is not None and end_id != self.frame_id and not np.any((ids == end_id) & (kinds == POSE)):
+            end_id = None
+        return LocalMap.trusted(self.dim, self.frame_id, end_id, ids, kinds, self.x[self.scalar_index(keep)], info, self.name)
+
     # ------------------------------------------------------------------ validation
 
     def validate(self, limits: InputLimits | None = None) -> None:

@@ -855,13 +855,7 @@ def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
             ) from None
         i_kk = i_kk - i_kr @ scipy.linalg.cho_solve(factor, i_kr.T)
     i_kk = 0.5 * (i_kk + i_kk.T)
-    new_info = sp.csr_matrix(i_kk) if sp.issparse(submap.info) else i_kk
-    end_id = submap.end_id
-    ids = submap.ids[keep_vars]
-    kinds = submap.kinds[keep_vars]
-    if end_id is not None and end_id != submap.frame_id and not np.any((ids == end_id) & (kinds == POSE)):
-        end_id = None
-    return LocalMap.trusted(submap.dim, submap.frame_id, end_id, ids, kinds, submap.x[sc_k], new_info, submap.name)
+    return submap.restricted(keep_vars, sp.csr_matrix(i_kk) if sp.issparse(submap.info) else i_kk)
 
 
 __all__ = [

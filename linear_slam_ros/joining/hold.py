@@ -72,14 +72,9 @@ def _select(submap: LocalMap, var_indices: list[int]) -> LocalMap:
 
     Exact when they are uncoupled from the others (:func:`_uncoupled`); a sparse information stays sparse.
     """
-    keep = np.asarray(var_indices, dtype=np.int64)
-    scalars = submap.scalar_index(keep)
+    scalars = submap.scalar_index(np.asarray(var_indices, dtype=np.int64))
     info = submap.info[scalars][:, scalars] if sp.issparse(submap.info) else np.asarray(submap.info)[np.ix_(scalars, scalars)]
-    ids, kinds = submap.ids[keep], submap.kinds[keep]
-    end_id = submap.end_id
-    if end_id is not None and end_id != submap.frame_id and not np.any((ids == end_id) & (kinds == POSE)):
-        end_id = None
-    return LocalMap.trusted(submap.dim, submap.frame_id, end_id, ids, kinds, submap.x[scalars], info, submap.name)
+    return submap.restricted(var_indices, info)
 
 
 def split_forward(

@@ -209,7 +209,8 @@ def cmd_refine(args: argparse.Namespace) -> int:
 
 def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     config = JoinerConfig.from_mapping(
-        {"mode": args.method, "map_type": args.map_type, "gate_probability": args.gate_probability}, online=False
+        {"mode": args.method, "map_type": args.map_type, "gate_probability": args.gate_probability,
+         "hold_closures": args.hold_closures}, online=False,
     )
     gate = config.gate_probability or None
     strategy_type: Any = type(get_strategy(config.mode, config.map_type))
@@ -232,13 +233,14 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
     islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
     held_left = 0  # forward loop closures still held at the end (their pose never reached)
-    if args.initial_state is not None or args.save_state is not None or gate is not None or sources.needs_joiner:
+    holding = config.hold_closures or gate is not None
+    if args.initial_state is not None or args.save_state is not None or holding or sources.needs_joiner:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
         before = initial.state.relabels if initial is not None else None
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
             run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
                                     sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised,
-                                    joined_at)
+                                    joined_at, config.hold_closures or None)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
         held_left = len(saved.state.held)
@@ -266,7 +268,9 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         if gate is not None:
             report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
                            "reinitialised": [r.as_dict() for r in reinitialised],
-                           "n_reinitialised": len(reinitialised), "n_held": held_left})
+                           "n_reinitialised": len(reinitialised)})
+        if holding:
+            report.update({"hold_closures": True, "n_held": held_left})
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
@@ -408,6 +412,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--gate-probability", type=float, default=0.0,
                        help="χ² gate before each join at this probability (online-dc, sequential); 0: off. "
                             "report.json then lists the gate decisions (gated, n_gated)")
+        p.add_argument("--hold-closures", action="store_true",
+                       help="hold forward loop closures until the chain reaches their pose (always with the gate); "
+                            "report.json then gives n_held, the closures whose pose was never reached")
         p.add_argument("--save-state", type=Path, default=None,
                        help="write the joiner's exact state here (for --initial-state, or the node's initial_map)")
 

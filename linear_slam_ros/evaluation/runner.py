@@ -89,6 +89,7 @@ def run_joiner(
     robots: Sequence[str] | None = None,
     reinitialised: list[Reinitialisation] | None = None,
     joined_at: list[int | None] | None = None,
+    hold_closures: bool | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
@@ -101,6 +102,8 @@ def run_joiner(
     ``gated`` (:meth:`GateRecord.as_dict`) and are not errors, and the features it re-initialised
     to ``reinitialised``; ``joined_at`` receives each map's place in the join order (``None``: not
     joined), to score the result with :func:`~linear_slam_ros.joining.reinit.as_joined`.
+    ``hold_closures``: forward loop closures held until the chain reaches their pose
+    (:class:`Joiner`; ``None``: while the gate is on).
 
     Returns:
         The timed run and the joiner's final saved value (for ``--save-state``).
@@ -111,7 +114,7 @@ def run_joiner(
     """
     if not maps:
         raise InvalidMapError("no local maps to join")
-    joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability)
+    joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability, hold_closures=hold_closures)
     reasons: list[str] = []
     joiner.on_reject = lambda reason, message: None if reason in ("gated", "gap") else reasons.append(message)
     if initial is not None:

@@ -121,6 +121,12 @@ class JoinerConfig:
         "chi-square gate: probability of the NIS quantile a submap's common variables must pass before joining "
         "(failing variables are split off, counted as 'gated'); 0 turns the gate off", bounds=(0.0, 0.999999999),
     )
+    hold_closures: bool = _param(
+        False,
+        "hold forward loop closures (poses a submap measures ahead of the chain, each with information of its own) "
+        "until the chain reaches their pose, then join them: the gate can test them, and the linear map of a pose "
+        "graph is better; always on while gate_probability > 0", read_only=True,
+    )
     robots: tuple[str, ...] = _param(
         (),
         "robot namespaces: with a list, the node subscribes to <robot>/local_map and <robot>/pose_graph for each, "

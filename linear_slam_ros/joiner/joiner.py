@@ -520,6 +520,11 @@ class SavedJoiner:
     robot_pending: tuple[tuple[str, int, LocalMap], ...] = ()
 
 
+def _check_gate(probability: float | None) -> None:
+    if probability is not None and not 0.0 <= probability < 1.0:
+        raise ConfigError(f"gate_probability={probability!r} must be in [0, 1) (0 or None: no gate)")
+
+
 FIRST_SEQ = 1
 """Sequence number of a stream's first submap (the bag tools and the layout examples start at 1)."""
 
@@ -607,11 +612,23 @@ class Joiner:
     def __post_init__(self) -> None:
         if self.max_held < 0:
             raise ConfigError(f"max_held={self.max_held!r} must be >= 0")
-        if self.gate_probability is not None and not 0.0 <= self.gate_probability < 1.0:
-            raise ConfigError(f"gate_probability={self.gate_probability!r} must be in [0, 1) (0 or None: no gate)")
+        _check_gate(self.gate_probability)
         self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
         CACHE.anchors.clear()  # they place chains of a joiner's map: one joiner per process
+
+    def set_gate(self, probability: float | None) -> None:
+        """Change the gate's probability from the next submap on (``None`` or 0: off).
+
+        Holding closures follows it unless :attr:`hold_closures` says otherwise; closures already
+        held are joined as the chain reaches them either way.
+
+        Raises:
+            ConfigError: ``probability`` is not in [0, 1).
+        """
+        _check_gate(probability)
+        self.gate_probability = probability
+        self.state = self._scheduled(self.state)
 
     def _scheduled(self, state: JoinerState) -> JoinerState:
         """Return ``state`` set to defer its large joins, and to hold closures, as this joiner is configured to."""

@@ -144,6 +144,7 @@ class JoinerNode(Node):
             config.mode, config.map_type, reorder_window=config.reorder_window, reorder_timeout=config.reorder_timeout,
             reorder_max_bytes=config.reorder_max_bytes, defer_above=config.background_merge_scalars or None,
             worker=self.worker, gate_probability=config.gate_probability or None,
+            hold_closures=config.hold_closures or None,  # False: as the gate (held while it is on)
         )
         self.joiner.on_reject = self._on_reject
         self.n_received = 0
@@ -239,6 +240,9 @@ class JoinerNode(Node):
         for p in params:  # publish_rate and summary_period: read by the output thread at each period
             if p.name in ("reorder_window", "reorder_timeout", "reorder_max_bytes"):
                 setattr(self.joiner, p.name, getattr(changed, p.name))
+            if p.name == "gate_probability":  # from the next submap on (closures held from then on too)
+                with self._lock:
+                    self.joiner.set_gate(changed.gate_probability or None)
         return SetParametersResult(successful=True)
 
     def _config_values(self) -> dict[str, Any]:

@@ -228,3 +228,37 @@ def test_closures_beyond_max_held_are_dropped_oldest_first_and_counted():
                                            "max_held=3 closures wait for their pose (pose 8 not reached)")
     with pytest.raises(ConfigError, match=r"max_held=-1 must be >= 0"):
         Joiner(JoinMethod.ONLINE_DC, max_held=-1)
+
+
+def test_set_gate_turns_holding_on_and_off_unless_it_is_set_apart():
+    from linear_slam_ros.core.errors import ConfigError
+
+    j = Joiner(JoinMethod.ONLINE_DC)
+    assert not j.state.hold_closures
+    j.set_gate(GATE)
+    assert j.gate_probability == GATE and j.state.hold_closures
+    j.set_gate(None)
+    assert not j.state.hold_closures
+    kept = Joiner(JoinMethod.ONLINE_DC, hold_closures=True)
+    kept.set_gate(None)
+    assert kept.state.hold_closures
+    with pytest.raises(ConfigError, match=r"gate_probability=1\.0 must be in \[0, 1\)"):
+        j.set_gate(1.0)
+    assert j.gate_probability is None
+
+
+def test_cli_join_with_hold_closures_reports_them(tmp_path, monkeypatch):
+    import json
+
+    from linear_slam_ros.cli.main import main
+    from support import CACHE, dataset_archive
+
+    monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
+    archive = str(dataset_archive("Intel"))
+    assert main(["join", archive, "--method", "online-dc", "--hold-closures", "--out", str(tmp_path / "held")]) == 0
+    report = json.loads((tmp_path / "held" / "report.json").read_text())
+    assert report["hold_closures"] is True and report["n_held"] == 0 and "gated" not in report
+    assert round(report["chi2"], 2) == 546.56  # 546.51 with the closures fused on arrival (README, "Gating")
+    assert main(["join", archive, "--method", "online-dc", "--out", str(tmp_path / "plain")]) == 0
+    plain = json.loads((tmp_path / "plain" / "report.json").read_text())
+    assert "hold_closures" not in plain and round(plain["chi2"], 2) == 546.51

@@ -1,0 +1,43 @@
+"""The node's parameter callback: values it applies to the running joiner at once."""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+from rclpy.parameter import Parameter
+
+from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.joiner.joiner import Joiner
+from linear_slam_ros.joiner.strategy import JoinMethod
+from linear_slam_ros.ros.node import JoinerNode
+
+
+def _fake_node(config: JoinerConfig) -> SimpleNamespace:
+    """What ``JoinerNode._on_set_parameters`` uses of the node: its configuration, joiner and lock."""
+    fake = SimpleNamespace(config=config, joiner=Joiner(JoinMethod.ONLINE_DC), _lock=threading.Lock())
+    fake._config_values = lambda: JoinerNode._config_values(fake)  # type: ignore[arg-type]
+    return fake
+
+
+def test_gate_probability_set_at_run_time_reaches_the_joiner_and_holding_follows_it():
+    fake = _fake_node(JoinerConfig())
+    result = JoinerNode._on_set_parameters(fake, [Parameter("gate_probability", value=0.99999999)])  # type: ignore[arg-type]
+    assert result.successful
+    assert fake.joiner.gate_probability == 0.99999999 and fake.joiner.state.hold_closures
+    assert fake.config.gate_probability == 0.99999999
+    result = JoinerNode._on_set_parameters(fake, [Parameter("gate_probability", value=0.0)])  # type: ignore[arg-type]
+    assert result.successful and fake.joiner.gate_probability is None and not fake.joiner.state.hold_closures
+
+
+def test_a_gate_probability_out_of_range_is_refused_and_changes_nothing():
+    fake = _fake_node(JoinerConfig())
+    result = JoinerNode._on_set_parameters(fake, [Parameter("gate_probability", value=1.5)])  # type: ignore[arg-type]
+    assert not result.successful and "gate_probability=1.5 is outside its range" in result.reason
+    assert fake.joiner.gate_probability is None and fake.config.gate_probability == 0.0
+
+
+def test_reorder_settings_reach_the_joiner():
+    fake = _fake_node(JoinerConfig())
+    result = JoinerNode._on_set_parameters(fake, [Parameter("reorder_window", value=7)])  # type: ignore[arg-type]
+    assert result.successful and fake.joiner.reorder_window == 7

@@ -369,7 +369,7 @@ def _same_state(a: JoinerState, b: JoinerState) -> bool:
     leaves_a, leaves_b = leaf_maps(a.joined.stack), leaf_maps(b.joined.stack)
     return (len(leaves_a) == len(leaves_b) and all(_same(x, y) for x, y in zip(leaves_a, leaves_b, strict=True))
             and [(h.seq, h.target) for h in a.held] == [(h.seq, h.target) for h in b.held]
-            and all(_same(x.closure, y.closure) for x, y in zip(a.held, b.held, strict=True)))
+            and all(_same(x.measured, y.measured) for x, y in zip(a.held, b.held, strict=True)))
 
 
 def clean_check(name: str, maps: Sequence[LocalMap], clean: CleanPass, seconds: float) -> dict[str, Any]:

@@ -357,6 +357,11 @@ class SubmapStep:
         released: the held closures whose pose the submap reached, in order, each with the gate's
             decision (``None``: no gate); those in :attr:`failed` are not among them.
         failed: held closures that could not be joined, with why (dropped).
+        fused: every measurement the step joined, as measured: what was joined of the submap (in
+            its frame; without its held closures and what the gate split off; re-initialised
+            features renamed), then each released closure that was joined
+            (:attr:`HeldClosure.measured`). Their joining objective (eq. 7) is the map's: what a
+            refiner of the joined map takes in.
     """
 
     state: JoinerState
@@ -364,23 +369,28 @@ class SubmapStep:
     result: GateResult | None = None
     released: tuple[tuple[HeldClosure, GateResult | None], ...] = ()
     failed: tuple[tuple[HeldClosure, str], ...] = ()
+    fused: tuple[LocalMap, ...] = ()
 
 
 def _fuse(
     state: JoinerState, submap: LocalMap, probability: float | None, join: Callable[[JoinerState, LocalMap], JoinerState],
     robot: str,
-) -> tuple[JoinerState, GateResult | None]:
+) -> tuple[JoinerState, GateResult | None, LocalMap | None]:
     """Gate ``submap`` (``probability``: the gate's, ``None``/0: none) and ``join`` what passes.
 
-    With nothing left to join, only the state's relabels change (the caller uses up the sequence number).
+    Returns:
+        The new state, the gate's decision (``None``: no gate) and what was joined (``None``:
+        nothing; then only the state's relabels change, and the caller uses up the sequence number).
     """
     if not probability:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids
-        return join(state, state.relabels.apply(submap) if state.relabels.aliases else submap), None
+        joined = state.relabels.apply(submap) if state.relabels.aliases else submap
+        return join(state, joined), None, joined
     result = gate_step(state, submap, probability, robot)
     if result.submap is None:
-        return replace(state, relabels=state.relabels.after(result)), result
+        return replace(state, relabels=state.relabels.after(result)), result, None
     state = join(state, result.submap)  # what the gate let through is now in the map: it counts in s²
-    return replace(state, variance=state.variance.updated(result), relabels=state.relabels.after(result)), result
+    return (replace(state, variance=state.variance.updated(result), relabels=state.relabels.after(result)), result,
+            result.submap)
 
 
 def submap_step(
@@ -400,22 +410,26 @@ def submap_step(
         numpy.linalg.LinAlgError: its numbers make a system singular (nothing changes).
     """
     state, rest = hold_step(state, submap, seq, robot)
-    result = None
+    result, joined = None, None
     if rest is not None:
-        state, result = _fuse(state, rest, probability, lambda s, m: join_step(s, m, seq, robot), robot)
-    if rest is None or (result is not None and result.submap is None):
+        state, result, joined = _fuse(state, rest, probability, lambda s, m: join_step(s, m, seq, robot), robot)
+    if joined is None:
         return SubmapStep(state.with_stream(robot, next_seq=seq + 1, last_seq=seq), False, result)
     state, due = due_closures(state, robot)
     released: list[tuple[HeldClosure, GateResult | None]] = []
     failed: list[tuple[HeldClosure, str]] = []
+    fused = [joined]
     for closure in due:
         try:
-            state, decision = _fuse(state, closure.closure, probability, lambda s, m: join_held(s, m, robot), robot)
+            state, decision, piece = _fuse(state, closure.in_target_frame(), probability,
+                                           lambda s, m: join_held(s, m, robot), robot)
         except (LinearSlamError, np.linalg.LinAlgError) as exc:
             failed.append((closure, str(exc)))
             continue
         released.append((closure, decision))
-    return SubmapStep(state, True, result, tuple(released), tuple(failed))
+        if piece is not None:  # the closure has one variable: joined whole, or not at all
+            fused.append(closure.measured)
+    return SubmapStep(state, True, result, tuple(released), tuple(failed), tuple(fused))
 
 
 def global_result(state: JoinerState, output_frame: OutputFrame | str = OutputFrame.END_POSE) -> Any | None:
@@ -582,6 +596,9 @@ class Joiner:
         n_skipped: submaps skipped as already handled.
         on_reject: called with ``(reason, message)`` of each rejection.
         on_join: called with ``(robot, seq)`` after each submap is joined, in join order.
+        on_fused: called with ``(robot, seq, maps)`` before ``on_join``: the measurements joined
+            with the submap, as measured (:attr:`SubmapStep.fused`; the submap itself when neither
+            the gate nor holding touched it), for a refiner of the joined map.
     """
 
     mode: JoinMethod
@@ -602,6 +619,7 @@ class Joiner:
     join_seconds: list[float] = field(default_factory=list)
     on_reject: Callable[[str, str], None] | None = None
     on_join: Callable[[str, int], None] | None = None
+    on_fused: Callable[[str, int, tuple[LocalMap, ...]], None] | None = None
     n_skipped: int = 0
     _pending: collections.defaultdict[str, dict[int, LocalMap]] = field(
         default_factory=lambda: collections.defaultdict(dict)
@@ -834,7 +852,7 @@ class Joiner:
             self._record_gate(step.result, submap, seq, robot)
         for closure, result in step.released:
             if result is not None:
-                self._record_gate(result, closure.closure, closure.seq, closure.robot, closure)
+                self._record_gate(result, submap, closure.seq, closure.robot, closure)
         for closure, why in step.failed:
             self.reject("held_closure", f"{closure.describe()}, held until the chain reached pose {closure.target}, "
                                         f"not joined: {why}")
@@ -847,6 +865,8 @@ class Joiner:
         self._progress_at[robot] = self.clock()
         if not step.joined:
             return []
+        if self.on_fused is not None:
+            self.on_fused(robot, seq, step.fused)
         if self.worker is not None:
             chain = self.state.chains[self.state.stream(robot).chain]
             self.worker.submit(self.state.strategy.pending(chain.joined))

@@ -6,14 +6,15 @@ poses ahead; Manhattan and Intel: a third and a fifth of them). Such a pose is n
 the submap arrives, so the gate has nothing to compare it with; by the time the chain reaches it
 the closure is fused and a wrong one can no longer be kept out.
 
-With the gate on, such a closure is split off the submap on arrival and *held*: a pose variable
+With the gate on (or ``hold_closures``), such a closure is split off the submap on arrival and *held*: a pose variable
 that the map does not hold, that is not the submap's end pose, and whose information is
 uncoupled from the rest of the submap (an edge of its own: the information of a star pose-graph
 chunk is block-diagonal per edge), so that taking it off is exact: its rows and columns are cut
 out, nothing is marginalised and nothing dense is formed. A pose with one edge tells the rest of
-the map nothing, so nothing is lost while it waits. The held closure is moved into the frame of its target pose (it then holds the
-submap's frame pose), and joined, through the gate, right after the submap whose end pose is the
-target: it is then a measurement between two poses of the map, in the frame of the chain's end.
+the map nothing, so nothing is lost while it waits. It is joined, through the gate, right after
+the submap whose end pose is the target, moved into the frame of that pose
+(:meth:`HeldClosure.in_target_frame`: it then holds the submap's frame pose): a measurement
+between two poses of the map, in the frame of the chain's end.
 
 Holding changes the order in which the linear joins see the measurements, so the map differs from
 the ungated run's even when nothing is gated (manhattanOlson3500: χ² 214.12 without holding,
@@ -41,8 +42,8 @@ class HeldClosure:
         name: that submap's name.
         target: id of the pose it measures (the pose the chain must reach).
         origin: id of the submap's frame pose (the pose it is measured from).
-        closure: the closure in the frame of pose ``target``: one pose variable, ``origin``, with
-            its information; end pose ``target`` (its frame).
+        measured: the closure as the submap measured it: in the frame of pose ``origin``, one pose
+            variable, ``target``, with its information (no end pose).
     """
 
     seq: int
@@ -50,11 +51,16 @@ class HeldClosure:
     name: str
     target: int
     origin: int
-    closure: LocalMap
+    measured: LocalMap
 
     def describe(self) -> str:
         """``loop closure 12 -> 62 of submap seq 12 ('localmap_12')``."""
         return f"loop closure {self.origin} -> {self.target} of submap seq {self.seq} ({self.name!r})"
+
+    def in_target_frame(self) -> LocalMap:
+        """The closure as it is joined: in the frame of pose ``target`` (the chain's end then), holding pose
+        ``origin``; end pose ``target``. The closed-form change of frame of :attr:`measured`."""
+        return change_frame(self.measured, self.target).replace(end_id=self.target, name=f"{self.name}/closure_{self.target}")
 
 
 def _uncoupled(submap: LocalMap, var_index: int) -> bool:
@@ -100,11 +106,7 @@ def split_forward(
     ]
     if not forward:
         return submap, ()
-    held = []
-    for i in forward:
-        target = int(submap.ids[i])
-        closure = change_frame(_select(submap, [i]), target).replace(end_id=target, name=f"{submap.name}/closure_{target}")
-        held.append(HeldClosure(seq, robot, submap.name, target, submap.frame_id, closure))
+    held = [HeldClosure(seq, robot, submap.name, int(submap.ids[i]), submap.frame_id, _select(submap, [i])) for i in forward]
     others = sorted(set(range(submap.n_vars)) - set(forward))
     return (_select(submap, others) if others else None), tuple(held)
 

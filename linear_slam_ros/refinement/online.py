@@ -5,8 +5,9 @@ the frame of the first submap's frame pose (the origin, not a variable). It work
 time, so its owner (:mod:`linear_slam_ros.refinement.worker`) decides between steps whether to
 take in new submaps, publish, or stop:
 
-- :meth:`OnlineRefiner.submit` queues a submap (as joined by the linear joiner, gate decisions
-  applied); :meth:`OnlineRefiner.linear` hands over the newest linear estimate of the joiner.
+- :meth:`OnlineRefiner.submit` queues a submap (what the linear joiner fused of it:
+  :attr:`~linear_slam_ros.joiner.joiner.SubmapStep.fused`, the gate's splits and held closures
+  out); :meth:`OnlineRefiner.linear` hands over the newest linear estimate of the joiner.
 - :meth:`OnlineRefiner.absorb` takes the queued submaps in. The previous solution is kept (warm
   start); a variable it has not seen takes the newest linear estimate's value, moved rigidly so
   that the newest pose both share (the anchor) sits where the refined solution has it; a
@@ -94,19 +95,6 @@ class RefinerConfig:
 
 
 @dataclass(frozen=True)
-class GateDecision:
-    """What the χ² gate split off a submap before it was joined (the joiner's ``GateRecord``).
-
-    Attributes:
-        variables: ``(id, kind)`` of the variables split off (when ``whole``: the worst ones only).
-        whole: every variable the map already held was split off (but the submap's end pose).
-    """
-
-    variables: tuple[tuple[int, int], ...]
-    whole: bool
-
-
-@dataclass(frozen=True)
 class Submission:
     """A submap the linear joiner joined, for the refiner.
 
@@ -115,14 +103,12 @@ class Submission:
         submap: the submap as received (in its own frame pose's frame).
         arrived: when it arrived, ``time.monotonic()`` s (the same clock in every process).
         stamp: its message stamp ``(sec, nanosec)``.
-        gate: what the gate split off before joining (``None``: nothing).
     """
 
     seq: int
     submap: LocalMap
     arrived: float
     stamp: tuple[int, int] = (0, 0)
-    gate: GateDecision | None = None
 
 
 @dataclass(frozen=True)
@@ -174,42 +160,6 @@ class RefinedMap:
     iterations: int
     converged: bool
     initial_chi2: float
-
-
-def apply_gate(submap: LocalMap, decision: GateDecision | None, known: Callable[[int], bool]) -> LocalMap:
-    """Return the submap as the joiner joined it: the gate's variables marginalised out.
-
-    Args:
-        submap: the submap as received.
-        decision: what the gate split off (``None``: the submap unchanged).
-        known: whether a variable key (``2 id + kind``) is already in the map (for ``whole``).
-
-    Raises:
-        InvalidMapError: a split-off variable is not in the submap, or nothing would be left.
-        SolverError: the split-off variables' information is not positive definite.
-    """
-    if decision is None:
-        return submap
-    if decision.whole:
-        drop = [
-            i for i, k in enumerate(submap.keys.tolist())
-            if known(k) and not (submap.kinds[i] == POSE and submap.ids[i] == submap.end_id)
-        ]
-    else:
-        drop = []
-        for var_id, kind in decision.variables:
-            index = submap.index_of(int(2 * var_id + kind))
-            if index is None:
-                raise InvalidMapError(f"gated variable (id {var_id}, kind {kind}) is not in submap {submap.name!r}")
-            drop.append(index)
-    if len(drop) >= submap.n_vars:
-        raise InvalidMapError(f"the gate split off all {submap.n_vars} variables of submap {submap.name!r}")
-    if not drop:
-        return submap
-    # imported here: the refiner process does not need the gate's module otherwise
-    from linear_slam_ros.joining.gate import marginalise_out
-
-    return marginalise_out(submap, drop)
 
 
 @dataclass
@@ -337,7 +287,7 @@ class OnlineRefiner:
         taken = 0
         for sub in batch:
             try:
-                m = apply_gate(sub.submap, sub.gate, lambda k: k in self._index)
+                m = sub.submap
                 self._take(m, lin, rec)
             except LinearSlamError as exc:
                 self.n_skipped += 1

@@ -48,7 +48,7 @@ from linear_slam_ros.joiner.robots import qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import SnapshotError, read_snapshot, write_snapshot
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
-from linear_slam_ros.refinement.online import GateDecision, LinearEstimate, Submission
+from linear_slam_ros.refinement.online import LinearEstimate, Submission
 from linear_slam_ros.refinement.worker import RefineWorker, SinkSpec
 from linear_slam_ros.ros.journal import JournalError
 from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
@@ -147,6 +147,7 @@ class JoinerNode(Node):
             hold_closures=config.hold_closures or None,  # False: as the gate (held while it is on)
         )
         self.joiner.on_reject = self._on_reject
+        self.joiner.on_fused = self._on_fused
         self.n_received = 0
         self.n_offered = 0  # submaps offered to the joiner (decoded), for the records' pruning
         self._version = 0  # bumped on every state change (join, rejection, reset, load); the publisher compares it
@@ -178,9 +179,11 @@ class JoinerNode(Node):
         # the same in CPU time of the thread doing it, with the joins' for comparison: wall time around
         # a journal write also counts the wait for the interpreter lock at its system call
         self._cpu_seconds = {"journal": 0.0, "snapshot": 0.0, "join": 0.0}
-        # refine: joined submaps go to the refiner process (README, "Refinement"); seq -> (submap, arrival)
+        # refine: what each submap's join fused goes to the refiner process (README, "Refinement");
+        # key -> arrival (monotonic s), and key -> the measurements joined (Joiner.on_fused)
         self.refiner: RefineWorker | None = None
-        self._refine_waiting: dict[int, tuple[LocalMap, float]] = {}
+        self._refine_waiting: dict[Any, float] = {}
+        self._fused: dict[Any, tuple[LocalMap, ...]] = {}
         self._start_state()
         if config.refine:
             self.refiner = RefineWorker(SinkSpec("linear_slam_ros.ros.refine_sink:make_sink", {
@@ -307,7 +310,7 @@ class JoinerNode(Node):
                 self._cpu_seconds["journal"] += time.thread_time() - c0
             c0 = time.thread_time()
             if self.refiner is not None and fresh:
-                self._refine_waiting[seq] = (submap, arrived if arrived is not None else time.monotonic())
+                self._refine_waiting[key] = arrived if arrived is not None else time.monotonic()
             if stamp is not None and fresh:
                 self._data_stamps[key] = stamp
             if arrived is not None and fresh:
@@ -349,18 +352,24 @@ class JoinerNode(Node):
                 f"{self.joiner.join_seconds[-1] * 1e3:.2f} ms"
             )
 
-    def _refine_submit(self, joined: list[int]) -> None:
-        """Send just-joined submaps to the refiner, with the gate's decisions (called under the lock)."""
+    def _on_fused(self, robot: str, seq: int, maps: tuple[LocalMap, ...]) -> None:
+        """Keep what a join fused for the refiner (the joiner calls it under the lock, before ``offer`` returns)."""
+        if self.refiner is not None:
+            self._fused[_key(robot, seq)] = maps
+
+    def _refine_submit(self, joined: list[Any]) -> None:
+        """Send what the just-joined submaps fused to the refiner: exactly the measurements of the joined map
+        (the gate's splits and held closures out, released closures in; called under the lock)."""
         assert self.refiner is not None
         stamp = self._stamp()
-        gated = {g.submap: g for g in self.joiner.gated[-len(joined) :]} if self.joiner.gated else {}
-        for s in joined:
-            waiting = self._refine_waiting.pop(s, None)
-            if waiting is None:
+        for key in joined:
+            arrived = self._refine_waiting.pop(key, None)
+            maps = self._fused.pop(key, ())
+            if arrived is None:
                 continue
-            g = gated.get(s)
-            decision = None if g is None else GateDecision(tuple(zip(g.variables, g.kinds, strict=True)), g.rejected)
-            self.refiner.submit(Submission(s, waiting[0], waiting[1], (stamp.sec, stamp.nanosec), decision))
+            seq = _robot_seq(key)[1]
+            for m in maps:
+                self.refiner.submit(Submission(seq, m, arrived, (stamp.sec, stamp.nanosec)))
 
     def _refine_prior(self) -> None:
         """Give the refiner the current map as its first submap (after a resume or a load): it holds the
@@ -428,6 +437,7 @@ class JoinerNode(Node):
         if self.refiner is not None:  # the refiner process ends (tested) and a fresh one starts
             with self._lock:
                 self._refine_waiting.clear()
+                self._fused.clear()
             code = self.refiner.reset()
             self.get_logger().info(f"refiner process restarted (the old one's exit code {code})")
         release_memory()  # the buffers of the cleared map go back to the system

@@ -110,7 +110,7 @@ def test_a_closure_that_cannot_be_joined_is_dropped_and_counted_and_its_submap_s
 def test_join_held_refuses_a_closure_not_at_the_chain_end_and_due_closures_needs_a_chain():
     maps = _stars(8)
     j = _run(Joiner(JoinMethod.ONLINE_DC, hold_closures=True), maps[:2])
-    closure = j.state.held[1].closure  # 1 -> 4, in pose 4's frame: the chain ends at pose 2
+    closure = j.state.held[1].in_target_frame()  # 1 -> 4, in pose 4's frame: the chain ends at pose 2
     with pytest.raises(FrameError, match=r"held closure 'star_1/closure_4' is in the frame of pose 4, not the end of "
                                          r"the chain of robot '' \(pose 2\)"):
         join_held(j.state, closure)
@@ -131,7 +131,7 @@ def test_a_submap_step_is_pure_and_a_held_state_saves_and_restores_exactly():
     back = decode_state(encode_state(j.save()))
     assert back.state.hold_closures and [(h.seq, h.origin, h.target, h.name) for h in back.state.held] == [
         (h.seq, h.origin, h.target, h.name) for h in state.held]
-    assert all(np.array_equal(a.closure.x, b.closure.x) and np.array_equal(a.closure.info, b.closure.info)
+    assert all(np.array_equal(a.measured.x, b.measured.x) and np.array_equal(a.measured.info, b.measured.info)
                for a, b in zip(back.state.held, state.held, strict=True))
     restored = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
     restored.restore(back)
@@ -262,3 +262,32 @@ def test_cli_join_with_hold_closures_reports_them(tmp_path, monkeypatch):
     assert main(["join", archive, "--method", "online-dc", "--out", str(tmp_path / "plain")]) == 0
     plain = json.loads((tmp_path / "plain" / "report.json").read_text())
     assert "hold_closures" not in plain and round(plain["chi2"], 2) == 546.51
+
+
+def test_on_fused_gives_the_measurements_of_the_joined_map_as_measured():
+    """What a refiner is given: every measurement but the gated closure, each in its submap's frame."""
+    from linear_slam_ros.refinement.online import refine_offline
+
+    maps = _stars()
+    bad = list(maps)
+    x = maps[9].x.copy()
+    x[3:5] += [1.5, -1.0]
+    x[5] += np.deg2rad(20.0)
+    bad[9] = maps[9].replace(x=x)
+    j = Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE)
+    fused: dict[int, tuple[LocalMap, ...]] = {}
+    j.on_fused = lambda robot, seq, ms: fused.__setitem__(seq, ms)
+    _run(j, bad)
+    assert [(m.frame_id, m.ids.tolist()) for m in fused[11]] == [(10, [11]), (8, [11])]  # closure 8 -> 11 joined with it
+    assert [(m.frame_id, m.ids.tolist()) for m in fused[12]] == [(11, [12])]  # 9 -> 12 was gated: not there
+    assert len(j.gated) == 1
+    measurements = [m for seq in sorted(fused) for m in fused[seq]]
+    without = [m if k != 9 else LocalMap(2, 9, 10, np.array([10]), np.array([POSE], dtype=np.int8), m.x[:3],
+                                         1e4 * np.eye(3), m.name) for k, m in enumerate(maps)]
+    got, ref = refine_offline(measurements), refine_offline(without)
+    assert got.chi2 == pytest.approx(ref.chi2, rel=1e-8)
+    plain = Joiner(JoinMethod.ONLINE_DC)
+    seen: dict[int, tuple[LocalMap, ...]] = {}
+    plain.on_fused = lambda robot, seq, ms: seen.__setitem__(seq, ms)
+    _run(plain, maps)
+    assert all(seen[seq] == (maps[seq - 1],) for seq in seen)  # neither gate nor holding: the submap itself

@@ -44,8 +44,13 @@ def test_an_uncoupled_pose_the_map_lacks_is_held_and_the_rest_is_cut_exactly():
     # in pose 40's frame it holds pose 5: the edge alone, moved by the closed-form change of frame
     alone = LocalMap(2, 5, None, np.array([40]), np.array([POSE], dtype=np.int8), submap.x[6:], info[6:, 6:])
     expected = change_frame(alone, 40)
-    c = closure.closure
+    m = closure.measured  # as measured: in pose 5's frame, pose 40 with its block
+    assert (m.frame_id, m.end_id, m.ids.tolist()) == (5, None, [40])
+    np.testing.assert_array_equal(m.x, submap.x[6:])
+    np.testing.assert_array_equal(m.info, info[6:, 6:])
+    c = closure.in_target_frame()
     assert (c.frame_id, c.end_id, c.ids.tolist(), c.kinds.tolist()) == (40, 40, [5], [POSE])
+    assert c.name == f"{submap.name}/closure_40"
     np.testing.assert_array_equal(c.x, expected.x)
     np.testing.assert_array_equal(c.info, expected.info)
     c.validate()
@@ -85,6 +90,6 @@ def test_a_held_closure_measures_the_same_relative_pose(dim):
     x = rng.normal(size=2 * n) * 0.3
     submap = LocalMap(dim, 0, 1, np.array([1, 7]), np.array([POSE, POSE], dtype=np.int8), x, np.eye(2 * n) * 50.0)
     _, (closure,) = split_forward(submap, lambda key: False, 1)
-    back = closure.closure.x
+    back = closure.in_target_frame().x
     np.testing.assert_allclose(compose_relative(dim, x[n:], back), np.zeros(n), atol=1e-12)
     np.testing.assert_allclose(back, relative_pose(dim, x[n:], np.zeros(n)), atol=1e-12)

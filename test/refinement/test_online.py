@@ -16,12 +16,10 @@ from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.joiner import Joiner, global_result
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.refinement.online import (
-    GateDecision,
     LinearEstimate,
     OnlineRefiner,
     RefinerConfig,
     Submission,
-    apply_gate,
     refine_offline,
 )
 from linear_slam_ros.refinement.worker import SinkSpec
@@ -82,24 +80,7 @@ def test_refine_offline_from_linear_and_from_chaining_agree(city: tuple[LocalMap
     assert from_linear.map.info.shape == (from_linear.map.state_dim,) * 2
 
 
-def test_gate_decisions_are_applied(city: tuple[LocalMap, ...]) -> None:
-    m = next(s for s in city if s.n_vars >= 2)
-    other = next(i for i in range(m.n_vars) if int(m.ids[i]) != m.end_id)
-    var = (int(m.ids[other]), int(m.kinds[other]))
-    trimmed = apply_gate(m, GateDecision((var,), False), lambda k: False)
-    assert trimmed.n_vars == m.n_vars - 1 and trimmed.index_of(2 * var[0] + var[1]) is None
-    whole = apply_gate(m, GateDecision((), True), lambda k: k != 2 * m.end_id)
-    assert [int(i) for i in whole.ids] == [m.end_id]
-    assert apply_gate(m, None, lambda k: True) is m
-
-
 def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
-    m = city[0]
-    with pytest.raises(InvalidMapError, match=r"gated variable \(id 999999, kind 0\) is not in submap"):
-        apply_gate(m, GateDecision(((999999, 0),), False), lambda k: False)
-    every = tuple((int(i), int(k)) for i, k in zip(m.ids, m.kinds, strict=True))
-    with pytest.raises(InvalidMapError, match=f"split off all {m.n_vars} variables"):
-        apply_gate(m, GateDecision(every, False), lambda k: False)
     with pytest.raises(ConfigError, match="refiner growth=0"):
         RefinerConfig(growth=0)
     with pytest.raises(ConfigError, match="refiner max_round_iterations=0"):

@@ -27,10 +27,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import POSE, LocalMap, pose_key
+
+IntArray = npt.NDArray[np.int64]
+FloatArray = npt.NDArray[np.float64]
 
 
 @dataclass(frozen=True)
@@ -63,20 +67,44 @@ class HeldClosure:
         return change_frame(self.measured, self.target).replace(end_id=self.target, name=f"{self.name}/closure_{self.target}")
 
 
-def _uncoupled(submap: LocalMap, var_index: int) -> bool:
-    """Whether variable ``var_index``'s information has no entry coupling it with another variable."""
-    scalars = submap.scalar_index(np.array([var_index]))
-    rows = submap.info[scalars] if sp.issparse(submap.info) else np.asarray(submap.info)[scalars]
-    rows = rows.toarray() if sp.issparse(rows) else rows
-    rows = rows.copy()
-    rows[:, scalars] = 0.0
-    return not np.any(rows)
+def _entries(submap: LocalMap) -> tuple[IntArray, IntArray, FloatArray]:
+    """The non-zero entries ``(row, column, value)`` of the submap's information (O(non-zeros), nothing densified)."""
+    if sp.issparse(submap.info):
+        coo = submap.info.tocoo()
+        keep = coo.data != 0.0
+        return coo.row[keep].astype(np.int64), coo.col[keep].astype(np.int64), coo.data[keep]
+    dense = np.asarray(submap.info)
+    rows, cols = np.nonzero(dense)
+    return rows.astype(np.int64), cols.astype(np.int64), dense[rows, cols]
+
+
+def _uncoupled(owner: IntArray, rows: IntArray, cols: IntArray, n_vars: int) -> npt.NDArray[np.bool_]:
+    """Which variables' information has no entry coupling them with another variable (``owner``: variable of each scalar)."""
+    coupled = np.zeros(n_vars, dtype=bool)
+    coupled[owner[rows[owner[rows] != owner[cols]]]] = True
+    return ~coupled
+
+
+def _closures(submap: LocalMap, forward: list[int], entries: tuple[IntArray, IntArray, FloatArray],
+              owner: IntArray) -> list[LocalMap]:
+    """Each uncoupled variable of ``forward`` alone, with its block of the information (one pass over the entries)."""
+    rows, cols, values = entries
+    offsets = np.concatenate([[0], np.cumsum(submap.sizes)])
+    slot = np.full(submap.n_vars, -1, dtype=np.int64)
+    slot[forward] = np.arange(len(forward))
+    size = int(submap.sizes[forward[0]])  # poses of one map: one size
+    blocks = np.zeros((len(forward), size, size))
+    mine = slot[owner[rows]] >= 0  # uncoupled: their entries are all in their own block
+    r, c = rows[mine], cols[mine]
+    var = owner[r]
+    blocks[slot[var], r - offsets[var], c - offsets[var]] = values[mine]
+    return [submap.restricted([i], blocks[j]) for j, i in enumerate(forward)]
 
 
 def _select(submap: LocalMap, var_indices: list[int]) -> LocalMap:
     """Return the variables ``var_indices`` of ``submap`` with their rows and columns of the information.
 
-    Exact when they are uncoupled from the others (:func:`_uncoupled`); a sparse information stays sparse.
+    Exact when they are uncoupled from the others; a sparse information stays sparse.
     """
     scalars = submap.scalar_index(np.asarray(var_indices, dtype=np.int64))
     info = submap.info[scalars][:, scalars] if sp.issparse(submap.info) else np.asarray(submap.info)[np.ix_(scalars, scalars)]
@@ -100,13 +128,18 @@ def split_forward(
     if submap.end_id is None:
         return submap, ()
     end_key = pose_key(submap.end_id)
-    forward = [
-        i for i, (key, kind) in enumerate(zip(submap.keys.tolist(), submap.kinds.tolist(), strict=True))
-        if kind == POSE and key != end_key and not known(key) and _uncoupled(submap, i)
-    ]
+    new = [i for i, (key, kind) in enumerate(zip(submap.keys.tolist(), submap.kinds.tolist(), strict=True))
+           if kind == POSE and key != end_key and not known(key)]
+    if not new:
+        return submap, ()
+    entries = _entries(submap)
+    owner = np.repeat(np.arange(submap.n_vars), submap.sizes)
+    alone = _uncoupled(owner, entries[0], entries[1], submap.n_vars)
+    forward = [i for i in new if alone[i]]
     if not forward:
         return submap, ()
-    held = [HeldClosure(seq, robot, submap.name, int(submap.ids[i]), submap.frame_id, _select(submap, [i])) for i in forward]
+    held = [HeldClosure(seq, robot, submap.name, int(submap.ids[i]), submap.frame_id, closure)
+            for i, closure in zip(forward, _closures(submap, forward, entries, owner), strict=True)]
     others = sorted(set(range(submap.n_vars)) - set(forward))
     return (_select(submap, others) if others else None), tuple(held)
 

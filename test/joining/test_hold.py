@@ -66,6 +66,8 @@ def test_the_end_pose_known_poses_coupled_poses_and_features_are_never_held():
                        _star(_block_info()).x[:8], _block_info()[:8, :8])  # a 2D feature is 2 scalars
     rest, held = split_forward(feature, lambda key: False, 1)  # pose 9 is held, never the feature
     assert [h.target for h in held] == [9] and rest is not None and rest.ids.tolist() == [6, 40]
+    np.testing.assert_array_equal(held[0].measured.info, _block_info()[3:6, 3:6])  # its block, after a pose, before a feature
+    np.testing.assert_array_equal(rest.info, _block_info()[np.ix_([0, 1, 2, 6, 7], [0, 1, 2, 6, 7])])
     no_end = LocalMap(2, 5, None, np.array([9]), np.array([POSE], dtype=np.int8), np.ones(3), np.eye(3))
     rest, held = split_forward(no_end, lambda key: False, 1)
     assert rest is no_end and held == ()  # no end pose: nothing tells a closure from the chain

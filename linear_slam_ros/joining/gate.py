@@ -646,7 +646,7 @@ class GateResult:
         scale = f", variance factor {self.variance_factor:.2f}" if self.variance_factor != 1.0 else ""
         head = (
             f"{label}: NIS {self.nis:.2f} {'>' if self.nis > self.threshold else '<='} χ² threshold "
-            f"{self.threshold:.2f} for {self.dof} dof (probability {self.probability:g}{scale}; per-variable "
+            f"{self.threshold:.2f} for {self.dof} dof (probability {self.probability:.12g}{scale}; per-variable "
             f"threshold {self.variable_threshold:.2f}); worst: {worst}"
         )
         if self.rejected:

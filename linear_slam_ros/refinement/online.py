@@ -100,15 +100,18 @@ class Submission:
 
     Attributes:
         seq: its sequence number.
-        submap: the submap as received (in its own frame pose's frame).
+        submap: what the joiner fused of it, in its own frame pose's frame.
         arrived: when it arrived, ``time.monotonic()`` s (the same clock in every process).
         stamp: its message stamp ``(sec, nanosec)``.
+        extra: a further measurement joined with submap ``seq`` (a held loop closure of an earlier
+            submap, released then): absorbed like a submap, not counted as one (:attr:`RefinedMap.n_submaps`).
     """
 
     seq: int
     submap: LocalMap
     arrived: float
     stamp: tuple[int, int] = (0, 0)
+    extra: bool = False
 
 
 @dataclass(frozen=True)
@@ -195,6 +198,7 @@ class OnlineRefiner:
         self._last_received = -math.inf
         self._linear: LinearEstimate | None = None
         self.n_absorbed = 0
+        self.n_submaps = 0  # absorbed submissions that are submaps (not extra measurements)
         self.n_skipped = 0
         self.iterations = 0
         self.round_iterations = 0
@@ -294,6 +298,7 @@ class OnlineRefiner:
                 logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
                 continue
             taken += 1
+            self.n_submaps += not sub.extra
             self._last = sub
             self._end_id = m.end_id if m.end_id is not None else self._end_id
         self._x = self._buf[: self._n_state].copy()
@@ -512,7 +517,7 @@ class OnlineRefiner:
         )
         last = self._last
         return RefinedMap(
-            refined, self.chi2, self.n_absorbed, last.seq, last.stamp, last.arrived, self.iterations, self.converged,
+            refined, self.chi2, self.n_submaps, last.seq, last.stamp, last.arrived, self.iterations, self.converged,
             self.initial_chi2,
         )
 

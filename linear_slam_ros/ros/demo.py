@@ -130,8 +130,13 @@ def run_demo(
     joiner = start_joiner({**joiner_params, **(params or {})}, dict(os.environ))
     mode = mode or JoinerConfig().mode.value
 
+    # with the χ² gate on, a submap the gate split something off counts as joined and under n_rejected
+    # ("gated"), as does a held closure gated later: only every submap joined ends the wait then
+    gate = float((params or {}).get("gate_probability", 0.0) or 0.0) > 0.0  # type: ignore[arg-type]
+
     def all_handled(m: MapMessage) -> bool:
-        return m.n_submaps >= n_sent or bool(m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent)
+        counted = bool(m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent)
+        return m.n_submaps >= n_sent or (counted and not gate)
 
     try:
         with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_map) as latest:

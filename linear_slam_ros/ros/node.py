@@ -368,8 +368,8 @@ class JoinerNode(Node):
             if arrived is None:
                 continue
             seq = _robot_seq(key)[1]
-            for m in maps:
-                self.refiner.submit(Submission(seq, m, arrived, (stamp.sec, stamp.nanosec)))
+            for i, m in enumerate(maps):  # the submap's part, then the held closures released with it
+                self.refiner.submit(Submission(seq, m, arrived, (stamp.sec, stamp.nanosec), extra=i > 0))
 
     def _refine_prior(self) -> None:
         """Give the refiner the current map as its first submap (after a resume or a load): it holds the

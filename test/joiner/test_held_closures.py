@@ -80,6 +80,7 @@ def test_a_wrong_closure_is_gated_when_the_chain_reaches_its_pose_and_the_map_is
     (reason, message), = messages
     assert reason == "gated"
     assert "loop closure 9 -> 12 of submap seq 10 ('star_9'), held until the chain reached pose 12" in message
+    assert "(probability 0.99999999" in message  # not rounded to 1
     ref = _run(Joiner(JoinMethod.ONLINE_DC, gate_probability=GATE), without)
     a, b = global_result(j.state), global_result(ref.state)
     assert a.keys.tolist() == b.keys.tolist() and np.array_equal(a.x, b.x)

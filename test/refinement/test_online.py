@@ -101,3 +101,14 @@ def test_a_submap_that_cannot_be_placed_is_left_out(city: tuple[LocalMap, ...]) 
     refiner.submit(Submission(2, city[10], 0.0))  # its frame pose is not in the map yet
     assert refiner.absorb() == 1
     assert refiner.n_skipped == 1 and refiner.n_absorbed == 1
+
+
+def test_an_extra_measurement_is_absorbed_but_not_counted_as_a_submap(city: tuple[LocalMap, ...]) -> None:
+    refiner = OnlineRefiner()
+    refiner.submit(Submission(1, city[0], 0.0))
+    refiner.submit(Submission(2, city[1], 0.0))
+    refiner.submit(Submission(2, city[1], 0.0, extra=True))  # a closure released with submap 2 (here: the same edges again)
+    assert refiner.absorb() == 3 and refiner.n_absorbed == 3
+    while not refiner.iterate():
+        pass
+    assert refiner.result().n_submaps == 2

@@ -24,8 +24,8 @@ def test_each_fused_measurement_is_submitted_once_with_its_submaps_arrival():
     JoinerNode._on_fused(fake, "", 3, (_map(2, 3), _map(0, 3)))  # type: ignore[arg-type]
     JoinerNode._on_fused(fake, "b", 4, (_map(3, 4),))  # type: ignore[arg-type]
     JoinerNode._refine_submit(fake, [3, ("b", 4), 8])  # type: ignore[arg-type]
-    assert [(s.seq, s.submap.frame_id, s.arrived, s.stamp) for s in submitted] == [
-        (3, 2, 1.5, (7, 5)), (3, 0, 1.5, (7, 5)), (4, 3, 2.5, (7, 5))]
+    assert [(s.seq, s.submap.frame_id, s.arrived, s.stamp, s.extra) for s in submitted] == [
+        (3, 2, 1.5, (7, 5), False), (3, 0, 1.5, (7, 5), True), (4, 3, 2.5, (7, 5), False)]
     assert fake._fused == {} and fake._refine_waiting == {9: 3.0}  # taken; 8 had neither
     JoinerNode._on_fused(SimpleNamespace(refiner=None, _fused=fake._fused), "", 5, (_map(4, 5),))  # type: ignore[arg-type]
     assert fake._fused == {}  # no refiner: nothing kept

@@ -291,8 +291,7 @@ class OnlineRefiner:
         taken = 0
         for sub in batch:
             try:
-                m = sub.submap
-                self._take(m, lin, rec)
+                self._take(sub.submap, lin, rec)
             except LinearSlamError as exc:
                 self.n_skipped += 1
                 logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
@@ -300,7 +299,7 @@ class OnlineRefiner:
             taken += 1
             self.n_submaps += not sub.extra
             self._last = sub
-            self._end_id = m.end_id if m.end_id is not None else self._end_id
+            self._end_id = sub.submap.end_id if sub.submap.end_id is not None else self._end_id
         self._x = self._buf[: self._n_state].copy()
         self._buf = np.zeros(0)
         self._angles = angle_mask(self._dim, np.asarray(self._kinds, dtype=np.int8))

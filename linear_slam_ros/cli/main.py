@@ -233,6 +233,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
     islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
     held_left = 0  # forward loop closures still held at the end (their pose never reached)
+    fused: list[LocalMap] = []  # what the joins fused (with the gate: what --refine refines, as the node's refiner)
     holding = config.hold_closures or gate is not None
     if args.initial_state is not None or args.save_state is not None or holding or sources.needs_joiner:
         initial = read_snapshot(args.initial_state) if args.initial_state is not None else None
@@ -240,7 +241,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
             run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
                                     sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised,
-                                    joined_at, config.hold_closures or None)
+                                    joined_at, config.hold_closures or None, fused)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
         held_left = len(saved.state.held)
@@ -260,37 +261,39 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     # each map under the feature ids it was joined with (features the gate re-initialised renamed)
     seen = as_joined(dataset.maps, reinitialised, joined_at, before) if joined_at else list(dataset.maps)
     covered = maps_within(run.result, seen) if islands["n_islands"] != 1 else seen
+    gate_keys: dict[str, object] = {}
+    if gate is not None:
+        gate_keys.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
+                          "reinitialised": [r.as_dict() for r in reinitialised], "n_reinitialised": len(reinitialised)})
+    if holding:
+        gate_keys.update({"hold_closures": True, "n_held": held_left})
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin, pose_formats)
         if "g2o" in formats:
             _write_g2o(args.out, sources.path, dataset, in_origin)
-        report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands}
-        if gate is not None:
-            report.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
-                           "reinitialised": [r.as_dict() for r in reinitialised],
-                           "n_reinitialised": len(reinitialised)})
-        if holding:
-            report.update({"hold_closures": True, "n_held": held_left})
+        report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands, **gate_keys}
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
             run.seconds, report["chi2"],
         )
         return 0
+    # with the gate, the objective of what was joined (the gate's splits left out), as the node's refiner has it
+    measurements = fused if gate is not None and islands["n_islands"] == 1 else covered
     t0 = time.perf_counter()
     if getattr(args, "refine", False):  # join --refine: the node's refiner, run over the whole stream to convergence
         from linear_slam_ros.evaluation.nonlinear import RefineResult
         from linear_slam_ros.refinement.online import RefinerConfig, refine_offline
 
-        done = refine_offline(covered, run.result, RefinerConfig(chi2_rtol=1e-13))
+        done = refine_offline(measurements, run.result, RefinerConfig(chi2_rtol=1e-13))
         refined = RefineResult(done.map, done.chi2, (done.initial_chi2, done.chi2), done.iterations, done.converged)
     else:
-        refined = refine(run.result, covered)
+        refined = refine(run.result, measurements)
     seconds_refine = time.perf_counter() - t0
     in_origin = write_result(args.out, refined.map, origin, pose_formats)
     if "g2o" in formats:
         _write_g2o(args.out, sources.path, dataset, in_origin)
-    report = {**report_for(run, dataset, refined.chi2), **islands}
+    report = {**report_for(run, dataset, refined.chi2), **islands, **gate_keys}
     report.update(
         {
             "linear_chi2": refined.chi2_history[0],

@@ -90,6 +90,7 @@ def run_joiner(
     reinitialised: list[Reinitialisation] | None = None,
     joined_at: list[int | None] | None = None,
     hold_closures: bool | None = None,
+    fused: list[LocalMap] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
@@ -103,7 +104,9 @@ def run_joiner(
     to ``reinitialised``; ``joined_at`` receives each map's place in the join order (``None``: not
     joined), to score the result with :func:`~linear_slam_ros.joining.reinit.as_joined`.
     ``hold_closures``: forward loop closures held until the chain reaches their pose
-    (:class:`Joiner`; ``None``: while the gate is on).
+    (:class:`Joiner`; ``None``: while the gate is on). ``fused`` receives every measurement the
+    joins fused, as measured (:attr:`~linear_slam_ros.joiner.joiner.SubmapStep.fused`): the joined
+    map's objective, what the node's refiner is given.
 
     Returns:
         The timed run and the joiner's final saved value (for ``--save-state``).
@@ -121,6 +124,8 @@ def run_joiner(
         joiner.restore(initial)
     order: dict[tuple[str, int], int] = {}
     joiner.on_join = lambda robot, seq: order.__setitem__((robot, seq), joiner.state.n_joined)
+    if fused is not None:
+        joiner.on_fused = lambda robot, seq, maps: fused.extend(maps)
     first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
     strategy = joiner.state.strategy
     tune_allocator(strategy.mmap_threshold)

@@ -273,3 +273,31 @@ def test_both_fast_marginals_equal_the_marginal_of_the_merged_map(read_benchmark
         np.testing.assert_allclose(fast.x, truth.x, atol=1e-9)
         np.testing.assert_allclose(fast.cov, truth.cov, atol=1e-9 * np.abs(truth.cov).max())
     assert (sum(reduced) > 0) == (n_joined == 743)  # seven entries: variables done with are dropped on the way
+
+
+def test_cli_join_refine_with_the_gate_refines_what_was_joined(tmp_path, monkeypatch):
+    """``join --refine --gate-probability``: the refiner is given what the joins fused (the gate's splits left
+    out), as the node's refiner is, and the report carries the gate's keys."""
+    import linear_slam_ros.refinement.online as online
+    from linear_slam_ros.io.datasets import read_dataset
+
+    monkeypatch.setenv("LINEAR_SLAM_CACHE", str(CACHE))
+    archive = dataset_archive("VicPark_200_local_maps")
+    given: list[list[LocalMap]] = []
+    real = online.refine_offline
+    monkeypatch.setattr(online, "refine_offline", lambda maps, *a, **k: (given.append(list(maps)), real(maps, *a, **k))[1])
+    out = tmp_path / "refined"
+    assert main(["join", str(archive), "--method", "online-dc", "--gate-probability", "0.99999999", "--refine",
+                 "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    (record,) = report["gated"]  # feature 514 of submap 123 (README, "Gating"): split off
+    assert report["n_gated"] == 1 and report["gate_probability"] == 0.99999999 and "n_held" in report
+    maps = list(read_dataset(archive).maps)
+    (measurements,) = given
+    assert len(measurements) == len(maps)  # no forward closure held in VicPark200: one per submap
+    k = record["submap"] - 1
+    split = set(zip(record["variables"], record["kinds"], strict=True))
+    kept = set(zip(measurements[k].ids.tolist(), measurements[k].kinds.tolist(), strict=True))
+    assert split and not split & kept and kept < set(zip(maps[k].ids.tolist(), maps[k].kinds.tolist(), strict=True))
+    assert all(np.array_equal(measurements[i].x, maps[i].x) and measurements[i].keys.tolist() == maps[i].keys.tolist()
+               for i in range(len(maps)) if i != k)  # every other submap as it came

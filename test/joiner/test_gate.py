@@ -290,7 +290,8 @@ def test_cli_join_refine_with_the_gate_refines_what_was_joined(tmp_path, monkeyp
     assert main(["join", str(archive), "--method", "online-dc", "--gate-probability", "0.99999999", "--refine",
                  "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
-    (record,) = report["gated"]  # feature 514 of submap 123 (README, "Gating"): split off
+    (record,) = report["gated"]  # feature 34 of submap 17 (README, "Gating"): split off
+    assert (record["submap"], record["variables"]) == (17, [34])
     assert report["n_gated"] == 1 and report["gate_probability"] == 0.99999999 and "n_held" in report
     maps = list(read_dataset(archive).maps)
     (measurements,) = given

@@ -180,10 +180,9 @@ class JoinerNode(Node):
         # a journal write also counts the wait for the interpreter lock at its system call
         self._cpu_seconds = {"journal": 0.0, "snapshot": 0.0, "join": 0.0}
         # refine: what each submap's join fused goes to the refiner process (README, "Refinement");
-        # key -> arrival (monotonic s), and key -> the measurements joined (Joiner.on_fused)
+        # key -> arrival (monotonic s) until the join (Joiner.on_fused)
         self.refiner: RefineWorker | None = None
         self._refine_waiting: dict[Any, float] = {}
-        self._fused: dict[Any, tuple[LocalMap, ...]] = {}
         self._start_state()
         if config.refine:
             self.refiner = RefineWorker(SinkSpec("linear_slam_ros.ros.refine_sink:make_sink", {
@@ -334,8 +333,6 @@ class JoinerNode(Node):
                 self._poses.joined(joined, [self._seconds(s) for s in stamps])
                 if stamps[-1] is not None:
                     self._output_stamp = stamps[-1]
-                if self.refiner is not None:
-                    self._refine_submit(joined)
             self.n_offered += 1
             if self.n_offered % PRUNE_EVERY == 0:
                 self._prune(self._data_stamps, keep_joined=False)
@@ -353,23 +350,15 @@ class JoinerNode(Node):
             )
 
     def _on_fused(self, robot: str, seq: int, maps: tuple[LocalMap, ...]) -> None:
-        """Keep what a join fused for the refiner (the joiner calls it under the lock, before ``offer`` returns)."""
-        if self.refiner is not None:
-            self._fused[_key(robot, seq)] = maps
-
-    def _refine_submit(self, joined: list[Any]) -> None:
-        """Send what the just-joined submaps fused to the refiner: exactly the measurements of the joined map
-        (the gate's splits and held closures out, released closures in; called under the lock)."""
+        """Send what a join fused to the refiner: exactly the measurements of the joined map (the gate's splits
+        and held closures out, released closures in). The joiner calls it under the lock, once per joined submap."""
+        arrived = self._refine_waiting.pop(_key(robot, seq), None) if self.refiner is not None else None
+        if arrived is None:  # no refiner, or a submap joined before it started (the journal's replay)
+            return
         assert self.refiner is not None
         stamp = self._stamp()
-        for key in joined:
-            arrived = self._refine_waiting.pop(key, None)
-            maps = self._fused.pop(key, ())
-            if arrived is None:
-                continue
-            seq = _robot_seq(key)[1]
-            for i, m in enumerate(maps):  # the submap's part, then the held closures released with it
-                self.refiner.submit(Submission(seq, m, arrived, (stamp.sec, stamp.nanosec), extra=i > 0))
+        for i, m in enumerate(maps):  # the submap's part, then the held closures released with it
+            self.refiner.submit(Submission(seq, m, arrived, (stamp.sec, stamp.nanosec), extra=i > 0))
 
     def _refine_prior(self) -> None:
         """Give the refiner the current map as its first submap (after a resume or a load): it holds the
@@ -437,7 +426,6 @@ class JoinerNode(Node):
         if self.refiner is not None:  # the refiner process ends (tested) and a fresh one starts
             with self._lock:
                 self._refine_waiting.clear()
-                self._fused.clear()
             code = self.refiner.reset()
             self.get_logger().info(f"refiner process restarted (the old one's exit code {code})")
         release_memory()  # the buffers of the cleared map go back to the system

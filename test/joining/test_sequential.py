@@ -7,7 +7,14 @@ import pytest
 
 from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
-from linear_slam_ros.joining.sequential import MIRROR_BLOCK, CovarianceMap, SequentialState, _mirror_lower, sequential_step
+from linear_slam_ros.joining.sequential import (
+    MIRROR_BLOCK,
+    CovarianceMap,
+    SequentialState,
+    _mirror_lower,
+    _sym_columns,
+    sequential_step,
+)
 from support import join_sequential, join_sequential_information
 
 
@@ -121,3 +128,11 @@ def test_mirror_lower_copies_the_lower_triangle_up_in_place(n, rng):
         out = _mirror_lower(matrix)
         assert out is matrix
         np.testing.assert_array_equal(out, lower + np.tril(lower, -1).T)
+
+
+def test_symmetric_columns_of_the_stored_lower_triangle(rng):
+    full = rng.normal(size=(9, 9))
+    full = full + full.T
+    lower = np.tril(full) + np.triu(rng.normal(size=(9, 9)), 1)  # what lies above the diagonal is never read
+    cols = np.array([0, 4, 8, 5])
+    np.testing.assert_array_equal(_sym_columns(lower, cols), full[:, cols])

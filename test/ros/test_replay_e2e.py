@@ -15,6 +15,7 @@ import rclpy
 from rclpy.serialization import serialize_message
 from std_msgs.msg import Float64MultiArray
 
+from linear_slam_ros.core.local_map import POSE
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
@@ -130,6 +131,35 @@ def test_late_subscriber_gets_the_latched_map(node, start_joiner):
     finally:
         late.destroy_node()
     assert got.n_submaps == len(maps) and got.local_map.x.tobytes() == first.local_map.x.tobytes()
+
+
+def test_path_and_features_are_built_only_for_subscribers_and_a_late_one_gets_them(node, start_joiner):
+    """Nobody subscribes to ``path``: it is skipped (counted); a subscriber after the stream gets the final one."""
+    from nav_msgs.msg import Path as PathMsg
+    from visualization_msgs.msg import MarkerArray
+
+    from linear_slam_ros.ros.qos import latched_qos
+    from linear_slam_ros.ros.spin import spin_until, wait_for_diagnostics
+
+    maps = _synthetic()
+    joiner = start_joiner(publish_rate=20.0, summary_period=0.2)
+    _publish_all(node, joiner.topic("local_map"), [to_msg(encode_map(m, i)) for i, m in enumerate(maps, start=1)])
+    final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 60.0, joiner)
+    diag = wait_for_diagnostics(node, lambda v: v.get("n_views_skipped", 0) >= 1, 10.0) or {}
+    assert diag.get("n_views_skipped", 0) >= 1, diag
+    late = rclpy.create_node("late_viewer")
+    got: dict[str, object] = {}
+    try:
+        late.create_subscription(PathMsg, joiner.topic("path"), lambda m: got.update(path=m), latched_qos())
+        late.create_subscription(MarkerArray, joiner.topic("features"), lambda m: got.update(features=m), latched_qos())
+        assert spin_until(late, lambda: len(got) == 2, 30.0), f"the late viewer got only {sorted(got)}"
+    finally:
+        late.destroy_node()
+    code, output = joiner.stop()
+    assert code == 0, output[-2000:]
+    n_poses = int(np.sum(final.local_map.kinds == POSE)) + 1  # and the map's frame, the newest pose
+    assert len(got["path"].poses) == n_poses  # type: ignore[attr-defined]
+    assert got["features"].markers  # type: ignore[attr-defined]
 
 
 def test_bad_input_is_rejected_counted_and_harmless(node, start_joiner, tmp_path):

@@ -703,6 +703,7 @@ class JoinerNode(Node):
         stamp = self._stamp_msg()
         newest: tuple[np.ndarray, np.ndarray | None] | None = None
         joined: Any = None
+        self._deferred_pose = None  # the map it holds goes before the new one is made (peak memory); a new one is set below
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
             self.pub_global.publish(to_msg(empty))

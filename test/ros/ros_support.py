@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,9 +17,9 @@ from support import committed_bag, dataset_source
 REPO = Path(__file__).resolve().parents[2]
 INSTALL_SETUP = REPO / "install" / "setup.bash"
 
-# DDS stays on loopback, in a domain of this test run (never the default 0, nor the domain of
-# `make run`): the tests never meet another run's nodes.
-os.environ.update(loopback_env(20 + os.getpid() % 70))
+# DDS stays on loopback, in a domain of this test run (20-59: never the default 0, nor `make`'s
+# 61): the tests never meet another run's nodes.
+os.environ.update(loopback_env(20 + os.getpid() % 40))
 
 from rclpy.serialization import deserialize_message  # noqa: E402  (after the environment is set)
 from std_msgs.msg import Float64MultiArray  # noqa: E402
@@ -96,10 +97,26 @@ class JoinerProcess:
         return code, out
 
 
+def global_map_subscription(node, topic: str, decode: Callable[..., object] = decode_map) -> LatestMessage:
+    """Subscribe to a joiner's latched ``global_map`` now (use it as a context manager); pass it to
+    :func:`wait_for_global_map` as ``latest``.
+
+    Subscribing before the joiner is fed makes its last map a live delivery: a subscription made
+    after the joiner's last publication depends on the latched (transient-local) copy alone.
+    """
+    return LatestMessage(node, topic, lambda raw: decode(*parts(deserialize_message(raw, Float64MultiArray))))
+
+
 def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeout_s: float, joiner: JoinerProcess | None = None,
-                        decode: Callable[..., object] = decode_map):
-    """Spin until a received global map (decoded by ``decode``) satisfies ``done``; return (message, receive time)."""
-    with LatestMessage(node, topic, lambda raw: decode(*parts(deserialize_message(raw, Float64MultiArray)))) as latest:
+                        decode: Callable[..., object] = decode_map, latest: LatestMessage | None = None):
+    """Spin until a received global map (decoded by ``decode``) satisfies ``done``; return (message, receive time).
+
+    ``latest``: an open :func:`global_map_subscription` of ``topic`` to wait on (default: subscribe now).
+    """
+    own = latest is None
+    if latest is None:
+        latest = global_map_subscription(node, topic, decode)
+    try:
         try:
             satisfied = latest.wait(done, timeout_s, joiner.process if joiner is not None else None)
             exited = False
@@ -109,5 +126,17 @@ def wait_for_global_map(node, topic: str, done: Callable[[object], bool], timeou
             code, out = joiner.stop()
             pytest.fail(f"joiner exited with {code}:\n{out[-3000:]}")
         if not satisfied:
-            pytest.fail(f"no satisfying global_map on {topic} within {timeout_s} s (last: {latest.raw is not None})")
+            last = latest.value
+            seen = "none" if last is None else (
+                f"n_submaps={getattr(last, 'n_submaps', '?')}, stats={getattr(last, 'stats', '?')}, "
+                f"{time.monotonic() - latest.received_at:.1f} s before the timeout"
+            )
+            out = ""
+            if joiner is not None:  # what the joiner said (resume line, warnings, summaries)
+                code, out = joiner.stop()
+                out = f"\njoiner output (exit {code}):\n{out[-3000:]}"
+            pytest.fail(f"no satisfying global_map on {topic} within {timeout_s} s (last received: {seen}){out}")
         return latest.value, latest.received_at
+    finally:
+        if own:
+            latest.close()

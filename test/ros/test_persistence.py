@@ -19,7 +19,7 @@ from linear_slam_ros.joiner.snapshot import FORMAT_VERSION
 from linear_slam_ros.ros.bagio import read_messages
 from linear_slam_ros.ros.qos import inbound_qos
 from linear_slam_ros.ros.spin import spin_until
-from ros_support import call_trigger, wait_for_global_map
+from ros_support import call_trigger, global_map_subscription, wait_for_global_map
 from ros_support import dataset_bag as _bag
 
 KILLS = 10
@@ -82,8 +82,11 @@ def test_kill_9_at_random_instants_loses_nothing(name, mode, rate_factor, node, 
             resumed.append(lines[0].split("resumed from ", 1)[1])
     print("\n".join(resumed))  # shown with -s: snapshots and journal records replayed at each restart
     joiner = start_joiner(**params)
-    joiner.play(node, records)
-    final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner)
+    with global_map_subscription(node, joiner.topic("global_map")) as latest:  # before the last map is published
+        joiner.play(node, records)
+        final, _ = wait_for_global_map(
+            node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner, latest=latest
+        )
     code, output = joiner.stop()
     assert code == 0, output[-3000:]
     assert "resumed from" in output

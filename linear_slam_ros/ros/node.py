@@ -59,7 +59,7 @@ from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.global_map import encode_empty_global, encode_global
 from msg_adapters.ros import parts, to_msg
-from msg_adapters.views import empty_views, map_views, pose_with_covariance_msg, transform_msg
+from msg_adapters.views import MapViews, empty_views, map_views, pose_with_covariance_msg, transform_msg
 
 NODE_NAME = "joiner"
 PUBLISH_DUTY = 0.5
@@ -703,6 +703,7 @@ class JoinerNode(Node):
         stamp = self._stamp_msg()
         newest: tuple[np.ndarray, np.ndarray | None] | None = None
         joined: Any = None
+        views: MapViews | None
         self._deferred_pose = None  # the map it holds goes before the new one is made (peak memory); a new one is set below
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
@@ -739,10 +740,10 @@ class JoinerNode(Node):
         """Whether anyone subscribes to ``path`` or ``features`` (building them for 20,000 poses takes 0.35 s of Python)."""
         return self.pub_path.get_subscription_count() > 0 or self.pub_markers.get_subscription_count() > 0
 
-    def _map_views(self, joined: Any, state: JoinerState, stamp: Time) -> Any:
+    def _map_views(self, joined: Any, state: JoinerState, stamp: Time) -> MapViews:
         return map_views(joined, state.first_pose_id, self.config.map_frame, stamp, self.config.ellipse_max_state)
 
-    def _send_views(self, views: Any | None) -> None:
+    def _send_views(self, views: MapViews | None) -> None:
         """Publish ``path`` (when the map has poses) and ``features``; ``None``: skipped for want of a subscriber."""
         self._views_stale = views is None
         if views is None:

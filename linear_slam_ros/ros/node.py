@@ -757,7 +757,12 @@ class JoinerNode(Node):
         """Build the views skipped for want of a subscriber once one comes, the map having stopped changing."""
         if not self._views_stale or not self._views_wanted() or state.n_joined == 0:
             return
-        joined = global_result(state, self.config.output_frame)
+        try:
+            joined = global_result(state, self.config.output_frame)
+        except LinearSlamError as exc:  # pragma: no cover - outputs of a valid state
+            self._views_stale = False  # said once, not at every tick
+            self.get_logger().error(f"could not build the path and features: {exc}")
+            return
         self._send_views(self._map_views(joined, state, self._stamp_msg()) if joined is not None else None)
 
     def _send_robot_poses(self, state: JoinerState, joined: LocalMap, stamp: Time) -> None:

@@ -93,11 +93,25 @@ def test_factor_q_applied_in_every_mode_equals_its_dense_block(rng):
     q = g.q_block(np.arange(g.n_vars))
     gram = g.ang_blocks @ g.ang_blocks.transpose(0, 2, 1)
     assert np.abs(gram - np.eye(3)).max() > 1e-3  # the angle blocks are not even rotations
-    mat = rng.normal(size=(g.state_dim, 4))
-    np.testing.assert_allclose(g._apply_q(mat), q @ mat, atol=1e-12)
-    np.testing.assert_allclose(g._apply_q(mat, transpose=True), q.T @ mat, atol=1e-12)
-    np.testing.assert_allclose(g._apply_q(mat, inverse=True), np.linalg.solve(q, mat), atol=1e-10)
-    np.testing.assert_allclose(g._apply_q(mat, inverse=True, transpose=True), np.linalg.solve(q.T, mat), atol=1e-10)
+    for width in (4, 80):  # a product over all blocks at once, and matmul's stacked loop
+        mat = rng.normal(size=(g.state_dim, width))
+        np.testing.assert_allclose(g._apply_q(mat), q @ mat, atol=1e-12)
+        np.testing.assert_allclose(g._apply_q(mat, transpose=True), q.T @ mat, atol=1e-12)
+        np.testing.assert_allclose(g._apply_q(mat, inverse=True), np.linalg.solve(q, mat), atol=1e-10)
+        np.testing.assert_allclose(g._apply_q(mat, inverse=True, transpose=True), np.linalg.solve(q.T, mat), atol=1e-10)
+    some = np.array([0, 2, 3, g.n_vars - 1])
+    np.testing.assert_allclose(g.q_block(some, inverse=True), np.linalg.inv(g.q_block(some)), atol=1e-10)
+
+
+def test_q_block_in_2d_has_unit_angle_blocks_and_its_inverse_is_its_transpose(rng):
+    state = SequentialState()
+    for m in noisy_local_maps(make_world(2, 8, 8, rng), rng, 2):
+        state = sequential_step(state, m)
+    g = state.global_map
+    q = g.q_block(np.arange(g.n_vars))
+    np.testing.assert_array_equal(q[g.angles][:, g.angles], np.eye(int(g.angles.sum())))
+    assert np.abs(g.rot - np.eye(2)).max() > 1e-3  # the frame has turned
+    np.testing.assert_allclose(q @ g.q_block(np.arange(g.n_vars), inverse=True), np.eye(g.state_dim), atol=1e-14)
 
 
 def test_information_is_the_inverse_of_the_covariance(rng):

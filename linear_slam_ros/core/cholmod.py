@@ -11,6 +11,13 @@ Only the stable leading fields of CHOLMOD's structs are declared (``cholmod_spar
 ``cholmod_dense`` and ``cholmod_factor`` have kept their layout since CHOLMOD 1.x);
 ``cholmod_common`` is an opaque buffer larger than any version's. :func:`available` checks the
 library once, on a system with a known solution, before anything relies on it.
+
+Matrices whose entries fit 32-bit indices go through CHOLMOD's ``int`` interface
+(``cholmod_*``), larger ones through its ``long`` one (``cholmod_l_*``): scipy's own int32
+index arrays are then passed as they are, not copied to int64, and CHOLMOD's ordering and
+symbolic arrays are half as large. Measured on the 20,000-pose city graph's final merge
+(n = 60,000, 5.6 M stored entries): 110 against 167 MB of peak memory above the matrix,
+0.83 against 0.95 s, the same solution bit for bit.
 """
 
 from __future__ import annotations
@@ -19,6 +26,7 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,7 +39,9 @@ logger = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
-_LONG, _REAL, _DOUBLE, _SYS_A = 2, 1, 0, 0  # CHOLMOD_LONG, CHOLMOD_REAL, CHOLMOD_DOUBLE, CHOLMOD_A
+_INT, _LONG, _REAL, _DOUBLE, _SYS_A = 0, 2, 1, 0, 0  # CHOLMOD_INT, CHOLMOD_LONG, CHOLMOD_REAL, CHOLMOD_DOUBLE, CHOLMOD_A
+INT32_MAX_INDEX = 2**31 - 1
+"""Largest dimension or entry count CHOLMOD's ``int`` interface takes; beyond, the ``long`` one."""
 _COMMON_BYTES = 1 << 16  # sizeof(cholmod_common) is about 2-3 KB in CHOLMOD 3-5
 
 
@@ -64,28 +74,62 @@ class _Factor(ctypes.Structure):
     ]
 
 
-def _load() -> ctypes.CDLL | None:
+@dataclass(frozen=True)
+class _Api:
+    """One of CHOLMOD's two interfaces: its index type and its functions."""
+
+    itype: int
+    index: type[np.integer[Any]]
+    start: Any
+    finish: Any
+    analyze: Any
+    factorize: Any
+    solve: Any
+    free_factor: Any
+    free_dense: Any
+
+
+def _bind(lib: ctypes.CDLL, prefix: str, itype: int, index: type[np.integer[Any]]) -> _Api:
+    """Declare the functions ``prefix + name`` of one interface and return them."""
+    common = ctypes.c_void_p
+    signatures: dict[str, tuple[list[Any], Any]] = {
+        "start": ([common], None),
+        "finish": ([common], None),
+        "analyze": ([ctypes.POINTER(_Sparse), common], ctypes.POINTER(_Factor)),
+        "factorize": ([ctypes.POINTER(_Sparse), ctypes.POINTER(_Factor), common], None),
+        "solve": ([ctypes.c_int, ctypes.POINTER(_Factor), ctypes.POINTER(_Dense), common], ctypes.POINTER(_Dense)),
+        "free_factor": ([ctypes.POINTER(ctypes.POINTER(_Factor)), common], None),
+        "free_dense": ([ctypes.POINTER(ctypes.POINTER(_Dense)), common], None),
+    }
+    functions = {}
+    for name, (argtypes, restype) in signatures.items():
+        function = getattr(lib, prefix + name)
+        function.argtypes = argtypes
+        if restype is not None:
+            function.restype = restype
+        functions[name] = function
+    return _Api(itype, index, **functions)
+
+
+def _load() -> tuple[ctypes.CDLL, _Api, _Api] | None:
     name = ctypes.util.find_library("cholmod")
     if name is None:
         return None
     try:
         lib = ctypes.CDLL(name)
-    except OSError:  # pragma: no cover - a broken installation
+        return lib, _bind(lib, "cholmod_", _INT, np.int32), _bind(lib, "cholmod_l_", _LONG, np.int64)
+    except (OSError, AttributeError):  # pragma: no cover - a broken installation
         return None
-    common = ctypes.c_void_p
-    lib.cholmod_l_start.argtypes = [common]
-    lib.cholmod_l_finish.argtypes = [common]
-    lib.cholmod_l_analyze.argtypes = [ctypes.POINTER(_Sparse), common]
-    lib.cholmod_l_analyze.restype = ctypes.POINTER(_Factor)
-    lib.cholmod_l_factorize.argtypes = [ctypes.POINTER(_Sparse), ctypes.POINTER(_Factor), common]
-    lib.cholmod_l_solve.argtypes = [ctypes.c_int, ctypes.POINTER(_Factor), ctypes.POINTER(_Dense), common]
-    lib.cholmod_l_solve.restype = ctypes.POINTER(_Dense)
-    lib.cholmod_l_free_factor.argtypes = [ctypes.POINTER(ctypes.POINTER(_Factor)), common]
-    lib.cholmod_l_free_dense.argtypes = [ctypes.POINTER(ctypes.POINTER(_Dense)), common]
-    return lib
 
 
-_LIB = _load()
+_LOADED = _load()
+_LIB = None if _LOADED is None else _LOADED[0]
+
+
+def _api(n: int, nnz: int) -> _Api:
+    """The interface for an ``n x n`` matrix of ``nnz`` stored entries: ``int`` when they fit."""
+    assert _LOADED is not None
+    return _LOADED[1] if max(n, nnz) <= INT32_MAX_INDEX else _LOADED[2]
 
 
 def _positive_definite(factor: _Factor) -> bool:
@@ -96,13 +140,17 @@ def _positive_definite(factor: _Factor) -> bool:
     if factor.is_ll or factor.is_super:
         return True
     # simplicial LDL': D(j) is the first entry of column j (the diagonal), at x[p[j]]
-    p = np.ctypeslib.as_array(ctypes.cast(factor.p, ctypes.POINTER(ctypes.c_int64)), shape=(n + 1,))
+    index = ctypes.c_int32 if factor.itype == _INT else ctypes.c_int64
+    p = np.ctypeslib.as_array(ctypes.cast(factor.p, ctypes.POINTER(index)), shape=(n + 1,))
     x = np.ctypeslib.as_array(ctypes.cast(factor.x, ctypes.POINTER(ctypes.c_double)), shape=(int(factor.nzmax),))
     return bool(np.all(x[p[:n]] > 0))
 
 
+IndexArray = npt.NDArray[np.int32] | npt.NDArray[np.int64]
+
+
 def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray]:
-    """Return ``(n, indptr, indices, data)`` of ``matrix`` as sorted CSC in CHOLMOD's types."""
+    """Return ``(n, indptr, indices, data)`` of ``matrix`` as sorted CSC, indices in 64 bits."""
     csc = sp.csc_matrix(matrix)
     csc.sort_indices()
     indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
@@ -110,36 +158,50 @@ def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.i
     return csc.shape[0], indptr, indices, np.ascontiguousarray(csc.data, dtype=np.float64)
 
 
+def _native_csc(matrix: sp.spmatrix | sp.sparray) -> tuple[_Api, int, IndexArray, IndexArray, FloatArray]:
+    """Return the interface for ``matrix`` and its sorted CSC arrays in that interface's index type.
+
+    scipy's arrays are passed as they are when their types already fit (no copy).
+    """
+    csc = sp.csc_matrix(matrix)
+    csc.sort_indices()
+    api = _api(csc.shape[0], csc.nnz)
+    indptr = np.ascontiguousarray(csc.indptr, dtype=api.index)
+    indices = np.ascontiguousarray(csc.indices, dtype=api.index)
+    return api, csc.shape[0], indptr, indices, np.ascontiguousarray(csc.data, dtype=np.float64)
+
+
 def _structs(
-    n: int, indptr: npt.NDArray[np.int64], indices: npt.NDArray[np.int64], data: FloatArray, b: FloatArray
+    api: _Api, n: int, indptr: IndexArray, indices: IndexArray, data: FloatArray, b: FloatArray
 ) -> tuple[_Sparse, _Dense]:
     """CHOLMOD's views of a symmetric matrix (upper triangle read) and of a Fortran-ordered right-hand side.
 
     They point into the arrays: the caller keeps them alive while CHOLMOD uses the views.
+    ``indptr`` and ``indices`` are of ``api``'s index type.
     """
     ncol = 1 if b.ndim == 1 else b.shape[1]
     a_struct = _Sparse(
         n, n, data.size, indptr.ctypes.data, indices.ctypes.data, None, data.ctypes.data, None,
-        1, _LONG, _REAL, _DOUBLE, 1, 1,
+        1, api.itype, _REAL, _DOUBLE, 1, 1,
     )
     return a_struct, _Dense(n, ncol, n * ncol, n, b.ctypes.data, None, _REAL, _DOUBLE)
 
 
-def _solve(lib: Any, factor: Any, b_struct: _Dense, b: FloatArray, common: Any) -> FloatArray:
+def _solve(api: _Api, factor: Any, b_struct: _Dense, b: FloatArray, common: Any) -> FloatArray:
     """Solve with a computed factor; return the solution shaped as ``b`` (CHOLMOD's copy freed).
 
     Raises:
         SolverError: CHOLMOD could not solve.
     """
     n, ncol = b_struct.nrow, b_struct.ncol
-    solution = lib.cholmod_l_solve(_SYS_A, factor, ctypes.byref(b_struct), common)
+    solution = api.solve(_SYS_A, factor, ctypes.byref(b_struct), common)
     if not solution:
         raise SolverError(f"CHOLMOD could not solve a {n}x{n} system")
     try:
         out_ptr = ctypes.cast(solution.contents.x, ctypes.POINTER(ctypes.c_double))
         x = np.ctypeslib.as_array(out_ptr, shape=(ncol, n)).T.copy()
     finally:
-        lib.cholmod_l_free_dense(ctypes.byref(solution), common)
+        api.free_dense(ctypes.byref(solution), common)
     return x[:, 0].copy() if b.ndim == 1 else np.ascontiguousarray(x)
 
 
@@ -157,24 +219,23 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     """
     if _LIB is None:
         raise SolverError("CHOLMOD (libcholmod) is not installed")
-    n, indptr, indices, data = _csc_arrays(matrix)
+    api, n, indptr, indices, data = _native_csc(matrix)
     b = np.asfortranarray(rhs, dtype=np.float64)
-    a_struct, b_struct = _structs(n, indptr, indices, data, b)
+    a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
     common = ctypes.create_string_buffer(_COMMON_BYTES)
-    lib = _LIB
-    lib.cholmod_l_start(common)
-    factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), common)
+    api.start(common)
+    factor = api.analyze(ctypes.byref(a_struct), common)
     try:
         if not factor:
             raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
-        lib.cholmod_l_factorize(ctypes.byref(a_struct), factor, common)
+        api.factorize(ctypes.byref(a_struct), factor, common)
         if not _positive_definite(factor.contents):
             raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        return _solve(lib, factor, b_struct, b, common)
+        return _solve(api, factor, b_struct, b, common)
     finally:
         if factor:
-            lib.cholmod_l_free_factor(ctypes.byref(factor), common)
-        lib.cholmod_l_finish(common)
+            api.free_factor(ctypes.byref(factor), common)
+        api.finish(common)
 
 
 class Factor:
@@ -193,16 +254,15 @@ class Factor:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
         self._factor: ctypes._Pointer[_Factor] | None = None
         self._common: ctypes.Array[ctypes.c_char] | None = ctypes.create_string_buffer(_COMMON_BYTES)
-        self.n, indptr, indices, data = _csc_arrays(matrix)
-        lib = _LIB
-        lib.cholmod_l_start(self._common)
-        a_struct, _ = _structs(self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
-        factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), self._common)
+        self._api, self.n, indptr, indices, data = _native_csc(matrix)
+        self._api.start(self._common)
+        a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
+        factor = self._api.analyze(ctypes.byref(a_struct), self._common)
         if not factor:
             self.close()
             raise SolverError(f"CHOLMOD could not analyse a {self.n}x{self.n} system (out of memory?)")
         self._factor = factor
-        lib.cholmod_l_factorize(ctypes.byref(a_struct), factor, self._common)
+        self._api.factorize(ctypes.byref(a_struct), factor, self._common)
         if not _positive_definite(factor.contents):
             self.close()
             raise SolverError(f"information matrix of size {self.n} is not positive definite (CHOLMOD)")
@@ -213,20 +273,20 @@ class Factor:
         Raises:
             SolverError: the factor was closed, or CHOLMOD could not solve.
         """
-        if self._factor is None or self._common is None or _LIB is None:
+        if self._factor is None or self._common is None:
             raise SolverError("CHOLMOD factor used after it was closed")
         b = np.asfortranarray(rhs, dtype=np.float64)
         ncol = 1 if b.ndim == 1 else b.shape[1]
         b_struct = _Dense(self.n, ncol, self.n * ncol, self.n, b.ctypes.data, None, _REAL, _DOUBLE)
-        return _solve(_LIB, self._factor, b_struct, b, self._common)
+        return _solve(self._api, self._factor, b_struct, b, self._common)
 
     def close(self) -> None:
         """Free the factor and CHOLMOD's workspace (idempotent)."""
-        if self._factor is not None and _LIB is not None and self._common is not None:
-            _LIB.cholmod_l_free_factor(ctypes.byref(self._factor), self._common)
+        if self._factor is not None and self._common is not None:
+            self._api.free_factor(ctypes.byref(self._factor), self._common)
         self._factor = None
-        if self._common is not None and _LIB is not None:
-            _LIB.cholmod_l_finish(self._common)
+        if self._common is not None:
+            self._api.finish(self._common)
         self._common = None
 
     def __del__(self) -> None:
@@ -264,6 +324,7 @@ class ReusedAnalysis:
         self.analyses = 0
         self.solves = 0
         self._common: ctypes.Array[ctypes.c_char] | None = None
+        self._api: _Api | None = None  # the interface ``_common`` was started for (and the factor made by)
         self._factor: ctypes._Pointer[_Factor] | None = None
         self._pattern: tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]] | None = None
 
@@ -275,7 +336,6 @@ class ReusedAnalysis:
         """
         if _LIB is None:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
-        lib = _LIB
         n, indptr, indices, data = _csc_arrays(matrix)
         b = np.asfortranarray(rhs, dtype=np.float64)
         within = self._within_pattern(n, indptr, indices, data)
@@ -289,22 +349,26 @@ class ReusedAnalysis:
             within = self._within_pattern(n, indptr, indices, data)
             assert within is not None
         indptr, indices, data = within  # the kept pattern, this matrix's entries in it (explicit zeros elsewhere)
-        a_struct, b_struct = _structs(n, indptr, indices, data, b)
+        api = _api(n, indices.size)
+        if api is not self._api:  # a workspace serves one interface
+            self._finish()
+            self._common = ctypes.create_string_buffer(_COMMON_BYTES)
+            api.start(self._common)
+            self._api = api
+        indptr, indices = indptr.astype(api.index, copy=False), indices.astype(api.index, copy=False)
+        a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
         if self._factor is None:
-            if self._common is None:
-                self._common = ctypes.create_string_buffer(_COMMON_BYTES)
-                lib.cholmod_l_start(self._common)
-            factor = lib.cholmod_l_analyze(ctypes.byref(a_struct), self._common)
+            factor = api.analyze(ctypes.byref(a_struct), self._common)
             if not factor:
                 raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
             self._factor = factor
             self.analyses += 1
         assert self._factor is not None and self._common is not None
-        lib.cholmod_l_factorize(ctypes.byref(a_struct), self._factor, self._common)
+        api.factorize(ctypes.byref(a_struct), self._factor, self._common)
         if not _positive_definite(self._factor.contents):
             self._free_factor()  # a failed factorisation is not reused (the pattern is)
             raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        x = _solve(lib, self._factor, b_struct, b, self._common)
+        x = _solve(api, self._factor, b_struct, b, self._common)
         self.solves += 1
         return x
 
@@ -330,9 +394,17 @@ class ReusedAnalysis:
         return old_indptr, old_indices, full
 
     def _free_factor(self) -> None:
-        if self._factor is not None and _LIB is not None and self._common is not None:
-            _LIB.cholmod_l_free_factor(ctypes.byref(self._factor), self._common)
+        if self._factor is not None and self._api is not None and self._common is not None:
+            self._api.free_factor(ctypes.byref(self._factor), self._common)
         self._factor = None
+
+    def _finish(self) -> None:
+        """Free the factor and CHOLMOD's workspace."""
+        self._free_factor()
+        if self._common is not None and self._api is not None:
+            self._api.finish(self._common)
+        self._common = None
+        self._api = None
 
     def expect(self, pattern: sp.spmatrix | sp.sparray) -> None:
         """Take ``pattern``'s structure (symmetric, ``n x n``; its values are ignored) as the one to analyse
@@ -346,11 +418,8 @@ class ReusedAnalysis:
 
     def close(self) -> None:
         """Free the kept analysis and CHOLMOD's workspace (idempotent)."""
-        self._free_factor()
+        self._finish()
         self._pattern = None
-        if self._common is not None and _LIB is not None:
-            _LIB.cholmod_l_finish(self._common)
-        self._common = None
 
     def __del__(self) -> None:
         self.close()

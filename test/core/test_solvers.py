@@ -120,3 +120,31 @@ def test_a_kept_factor_solves_as_a_fresh_solve_any_number_of_times(rng):
     factor.close()
     with pytest.raises(SolverError, match="CHOLMOD factor used after it was closed"):
         factor.solve(np.ones(400))
+
+
+def test_cholmod_long_interface_solves_as_the_int_one_and_a_kept_analysis_changes_interface(rng, monkeypatch):
+    import linear_slam_ros.core.cholmod as cholmod
+
+    m, b = _spd(300, rng), rng.normal(size=(300, 2))
+    small = _spd(60, rng)
+    with_int = cholmod.solve_spd(m, b), cholmod.Factor(m).solve(b)
+    assert cholmod._api(300, m.nnz).index is np.int32
+    monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", small.nnz)  # m goes through cholmod_l_*, small through cholmod_*
+    assert cholmod._api(300, m.nnz).index is np.int64 and cholmod._api(60, small.nnz).index is np.int32
+    np.testing.assert_array_equal(cholmod.solve_spd(m, b), with_int[0])
+    np.testing.assert_array_equal(cholmod.Factor(m).solve(b), with_int[1])
+    for interface in ("int", "long"):  # simplicial LDL': D read through the factor's own index type
+        with pytest.raises(SolverError, match="information matrix of size 3 is not positive definite"):
+            cholmod.solve_spd(sp.csr_matrix(np.diag([1.0, -1.0, 2.0])), np.ones(3))
+        monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", 0)
+    monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", small.nnz)
+    solver = cholmod.ReusedAnalysis()
+    try:
+        np.testing.assert_allclose(solver.solve(small, b[:60, 0]), solve_spd(small, b[:60, 0]), rtol=1e-12)
+        assert solver._api is not None and solver._api.index is np.int32
+        np.testing.assert_allclose(solver.solve(m, b), solve_spd(m, b), rtol=1e-12)  # a new workspace, for cholmod_l_*
+        assert solver._api.index is np.int64 and solver.analyses == 2
+        np.testing.assert_allclose(solver.solve(2.0 * m, b), solve_spd(2.0 * m, b), rtol=1e-12)
+        assert solver.analyses == 2
+    finally:
+        solver.close()

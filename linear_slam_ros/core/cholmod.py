@@ -159,12 +159,15 @@ def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.i
 
 
 def _native_csc(matrix: sp.spmatrix | sp.sparray) -> tuple[_Api, int, IndexArray, IndexArray, FloatArray]:
-    """Return the interface for ``matrix`` and its sorted CSC arrays in that interface's index type.
+    """Return the interface for symmetric ``matrix`` and its sorted CSC arrays in that interface's index type.
 
-    scipy's arrays are passed as they are when their types already fit (no copy).
+    scipy's arrays are passed as they are when their types already fit (no copy). A CSR matrix's
+    arrays are those of its transpose in CSC, which is the same matrix: they are read as such,
+    not converted (a copy of every entry: 68 MB for a 20,000-pose map).
     """
-    csc = sp.csc_matrix(matrix)
-    csc.sort_indices()
+    csc = sp.csc_matrix(matrix.transpose() if isinstance(matrix, sp.csr_matrix | sp.csr_array) else matrix)
+    if not csc.has_sorted_indices:  # a sorted copy: the caller's arrays may be shared, and are not touched
+        csc = csc.sorted_indices()
     api = _api(csc.shape[0], csc.nnz)
     indptr = np.ascontiguousarray(csc.indptr, dtype=api.index)
     indices = np.ascontiguousarray(csc.indices, dtype=api.index)
@@ -211,7 +214,8 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     The interpreter lock is released while CHOLMOD analyses, factorises and solves.
 
     Args:
-        matrix: ``(n, n)``, symmetric (both triangles stored; the upper one is read).
+        matrix: ``(n, n)``, symmetric (both triangles stored; one is read: the upper one of a
+            CSR matrix's transpose, i.e. its lower one, and the upper one of any other format).
         rhs: ``(n,)`` or ``(n, k)``.
 
     Raises:

@@ -133,10 +133,11 @@ def test_cholmod_long_interface_solves_as_the_int_one_and_a_kept_analysis_change
     assert cholmod._api(300, m.nnz).index is np.int64 and cholmod._api(60, small.nnz).index is np.int32
     np.testing.assert_array_equal(cholmod.solve_spd(m, b), with_int[0])
     np.testing.assert_array_equal(cholmod.Factor(m).solve(b), with_int[1])
-    for interface in ("int", "long"):  # simplicial LDL': D read through the factor's own index type
+    for limit, index in ((small.nnz, np.int32), (0, np.int64)):  # simplicial LDL': D read through its own index type
+        monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", limit)
+        assert cholmod._api(3, 3).index is index
         with pytest.raises(SolverError, match="information matrix of size 3 is not positive definite"):
             cholmod.solve_spd(sp.csr_matrix(np.diag([1.0, -1.0, 2.0])), np.ones(3))
-        monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", 0)
     monkeypatch.setattr(cholmod, "INT32_MAX_INDEX", small.nnz)
     solver = cholmod.ReusedAnalysis()
     try:
@@ -148,3 +149,22 @@ def test_cholmod_long_interface_solves_as_the_int_one_and_a_kept_analysis_change
         assert solver.analyses == 2
     finally:
         solver.close()
+
+
+def test_cholmod_reads_a_csr_matrix_as_its_transpose_without_touching_it(rng):
+    from linear_slam_ros.core import cholmod
+
+    m = _spd(200, rng)
+    m.sort_indices()  # the joins' canonical form
+    b = rng.normal(size=200)
+    api, n, indptr, indices, _ = cholmod._native_csc(m)
+    assert np.shares_memory(indptr, m.indptr) and np.shares_memory(indices, m.indices)  # read as CSC, not copied
+    shuffled = m.copy()
+    for row in range(shuffled.shape[0]):  # the same matrix, its rows' entries out of order
+        lo, hi = shuffled.indptr[row], shuffled.indptr[row + 1]
+        shuffled.indices[lo:hi] = shuffled.indices[lo:hi][::-1].copy()
+        shuffled.data[lo:hi] = shuffled.data[lo:hi][::-1].copy()
+    shuffled.has_sorted_indices = False
+    before = shuffled.indices.copy()
+    np.testing.assert_allclose(cholmod.solve_spd(shuffled, b), cholmod.solve_spd(m.tocsc(), b), rtol=1e-12)
+    np.testing.assert_array_equal(shuffled.indices, before)  # the caller's arrays are not sorted in place

@@ -257,8 +257,9 @@ class Factor:
         if _LIB is None:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
         self._factor: ctypes._Pointer[_Factor] | None = None
-        self._common: ctypes.Array[ctypes.c_char] | None = ctypes.create_string_buffer(_COMMON_BYTES)
+        self._common: ctypes.Array[ctypes.c_char] | None = None  # set once the interface is known (close() reads both)
         self._api, self.n, indptr, indices, data = _native_csc(matrix)
+        self._common = ctypes.create_string_buffer(_COMMON_BYTES)
         self._api.start(self._common)
         a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
         factor = self._api.analyze(ctypes.byref(a_struct), self._common)

@@ -17,7 +17,12 @@ Matrices whose entries fit 32-bit indices go through CHOLMOD's ``int`` interface
 index arrays are then passed as they are, not copied to int64, and CHOLMOD's ordering and
 symbolic arrays are half as large. Measured on the 20,000-pose city graph's final merge
 (n = 60,000, 5.6 M stored entries): 110 against 167 MB of peak memory above the matrix,
-0.83 against 0.95 s, the same solution bit for bit.
+0.83 against 0.95 s, the same solution bit for bit (CHOLMOD caps supernode merging lower in
+the ``int`` interface, so factors of gigabytes could round differently). Its analysis can fail
+where the ``long`` one succeeds (the factor's entries must fit too): it is then retried there.
+
+Every entry point reads one triangle of a symmetric matrix, the same way: the upper one of CSC
+input, and of a CSR matrix the CSC arrays of its transpose (its lower one), without a copy.
 """
 
 from __future__ import annotations
@@ -149,29 +154,57 @@ def _positive_definite(factor: _Factor) -> bool:
 IndexArray = npt.NDArray[np.int32] | npt.NDArray[np.int64]
 
 
+def _sorted_csc(matrix: sp.spmatrix | sp.sparray) -> sp.csc_matrix:
+    """Return square symmetric ``matrix`` as CSC with sorted indices, sharing its arrays where it can.
+
+    A CSR matrix's arrays are those of its transpose in CSC, which is the same matrix: they are
+    read as such, not converted (a copy of every entry: 68 MB for a 20,000-pose map). Unsorted
+    indices are sorted in a copy: the caller's arrays may be shared with other threads.
+
+    Raises:
+        SolverError: the matrix is not square.
+    """
+    if isinstance(matrix, sp.csr_matrix | sp.csr_array):
+        csc, shape = sp.csc_matrix(matrix.transpose()), matrix.shape
+    else:
+        csc = sp.csc_matrix(matrix)
+        shape = csc.shape
+    if shape[0] != shape[1]:
+        raise SolverError(f"a symmetric positive definite matrix is square, got shape {shape}")
+    return csc if csc.has_sorted_indices else csc.sorted_indices()
+
+
 def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray]:
-    """Return ``(n, indptr, indices, data)`` of ``matrix`` as sorted CSC, indices in 64 bits."""
-    csc = sp.csc_matrix(matrix)
-    csc.sort_indices()
+    """Return ``(n, indptr, indices, data)`` of symmetric ``matrix`` as sorted CSC (:func:`_sorted_csc`), indices in 64 bits."""
+    csc = _sorted_csc(matrix)
     indptr = np.ascontiguousarray(csc.indptr, dtype=np.int64)
     indices = np.ascontiguousarray(csc.indices, dtype=np.int64)
     return csc.shape[0], indptr, indices, np.ascontiguousarray(csc.data, dtype=np.float64)
 
 
 def _native_csc(matrix: sp.spmatrix | sp.sparray) -> tuple[_Api, int, IndexArray, IndexArray, FloatArray]:
-    """Return the interface for symmetric ``matrix`` and its sorted CSC arrays in that interface's index type.
-
-    scipy's arrays are passed as they are when their types already fit (no copy). A CSR matrix's
-    arrays are those of its transpose in CSC, which is the same matrix: they are read as such,
-    not converted (a copy of every entry: 68 MB for a 20,000-pose map).
-    """
-    csc = sp.csc_matrix(matrix.transpose() if isinstance(matrix, sp.csr_matrix | sp.csr_array) else matrix)
-    if not csc.has_sorted_indices:  # a sorted copy: the caller's arrays may be shared, and are not touched
-        csc = csc.sorted_indices()
+    """Return the interface for symmetric ``matrix`` and its sorted CSC arrays (:func:`_sorted_csc`) in that
+    interface's index type: scipy's arrays as they are when their types already fit (no copy)."""
+    csc = _sorted_csc(matrix)
     api = _api(csc.shape[0], csc.nnz)
-    indptr = np.ascontiguousarray(csc.indptr, dtype=api.index)
-    indices = np.ascontiguousarray(csc.indices, dtype=api.index)
-    return api, csc.shape[0], indptr, indices, np.ascontiguousarray(csc.data, dtype=np.float64)
+    return api, csc.shape[0], *_in_type(api, csc.indptr, csc.indices), np.ascontiguousarray(csc.data, dtype=np.float64)
+
+
+def _in_type(api: _Api, indptr: IndexArray, indices: IndexArray) -> tuple[IndexArray, IndexArray]:
+    """The index arrays in ``api``'s index type (the same arrays when they already are)."""
+    return np.ascontiguousarray(indptr, dtype=api.index), np.ascontiguousarray(indices, dtype=api.index)
+
+
+def _long_api() -> _Api:
+    """CHOLMOD's ``long`` interface (where an ``int`` analysis that failed is retried)."""
+    assert _LOADED is not None
+    return _LOADED[2]
+
+
+def _check_rhs(rhs: FloatArray, n: int) -> None:
+    """Raise :class:`SolverError` unless ``rhs`` has ``n`` rows (CHOLMOD would read past its end)."""
+    if rhs.ndim not in (1, 2) or rhs.shape[0] != n:
+        raise SolverError(f"right-hand side of shape {rhs.shape} for a {n}x{n} system")
 
 
 def _structs(
@@ -225,10 +258,18 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
         raise SolverError("CHOLMOD (libcholmod) is not installed")
     api, n, indptr, indices, data = _native_csc(matrix)
     b = np.asfortranarray(rhs, dtype=np.float64)
+    _check_rhs(b, n)
     a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
     common = ctypes.create_string_buffer(_COMMON_BYTES)
     api.start(common)
     factor = api.analyze(ctypes.byref(a_struct), common)
+    if not factor and api is not _long_api():  # too large for the int interface: the long one
+        api.finish(common)
+        api = _long_api()
+        indptr, indices = _in_type(api, indptr, indices)
+        a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
+        api.start(common)
+        factor = api.analyze(ctypes.byref(a_struct), common)
     try:
         if not factor:
             raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
@@ -254,15 +295,22 @@ class Factor:
         Raises:
             SolverError: the library is missing, or the matrix is not positive definite.
         """
-        if _LIB is None:
-            raise SolverError("CHOLMOD (libcholmod) is not installed")
         self._factor: ctypes._Pointer[_Factor] | None = None
         self._common: ctypes.Array[ctypes.c_char] | None = None  # set once the interface is known (close() reads both)
+        if _LIB is None:
+            raise SolverError("CHOLMOD (libcholmod) is not installed")
         self._api, self.n, indptr, indices, data = _native_csc(matrix)
         self._common = ctypes.create_string_buffer(_COMMON_BYTES)
         self._api.start(self._common)
         a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
         factor = self._api.analyze(ctypes.byref(a_struct), self._common)
+        if not factor and self._api is not _long_api():  # too large for the int interface: the long one
+            self._api.finish(self._common)
+            self._api = _long_api()
+            indptr, indices = _in_type(self._api, indptr, indices)
+            a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
+            self._api.start(self._common)
+            factor = self._api.analyze(ctypes.byref(a_struct), self._common)
         if not factor:
             self.close()
             raise SolverError(f"CHOLMOD could not analyse a {self.n}x{self.n} system (out of memory?)")
@@ -281,6 +329,7 @@ class Factor:
         if self._factor is None or self._common is None:
             raise SolverError("CHOLMOD factor used after it was closed")
         b = np.asfortranarray(rhs, dtype=np.float64)
+        _check_rhs(b, self.n)
         ncol = 1 if b.ndim == 1 else b.shape[1]
         b_struct = _Dense(self.n, ncol, self.n * ncol, self.n, b.ctypes.data, None, _REAL, _DOUBLE)
         return _solve(self._api, self._factor, b_struct, b, self._common)
@@ -343,6 +392,7 @@ class ReusedAnalysis:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
         n, indptr, indices, data = _csc_arrays(matrix)
         b = np.asfortranarray(rhs, dtype=np.float64)
+        _check_rhs(b, n)
         within = self._within_pattern(n, indptr, indices, data)
         if within is None:  # entries the kept pattern lacks: analyse its union with this one (or this one)
             kept = self._pattern
@@ -354,21 +404,26 @@ class ReusedAnalysis:
             within = self._within_pattern(n, indptr, indices, data)
             assert within is not None
         indptr, indices, data = within  # the kept pattern, this matrix's entries in it (explicit zeros elsewhere)
-        api = _api(n, indices.size)
-        if api is not self._api:  # a workspace serves one interface
-            self._finish()
-            self._common = ctypes.create_string_buffer(_COMMON_BYTES)
-            api.start(self._common)
-            self._api = api
-        indptr, indices = indptr.astype(api.index, copy=False), indices.astype(api.index, copy=False)
-        a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
-        if self._factor is None:
+        api = self._api if self._factor is not None and self._api is not None else _api(n, indices.size)
+        for attempt in [api] if api is _long_api() else [api, _long_api()]:  # an int analysis too large: the long one
+            if attempt is not self._api:  # a workspace serves one interface
+                self._finish()
+                self._common = ctypes.create_string_buffer(_COMMON_BYTES)
+                attempt.start(self._common)
+                self._api = attempt
+            api = attempt
+            native_indptr, native_indices = _in_type(api, indptr, indices)  # kept alive while CHOLMOD reads them
+            a_struct, b_struct = _structs(api, n, native_indptr, native_indices, data, b)
+            if self._factor is not None:
+                break
             factor = api.analyze(ctypes.byref(a_struct), self._common)
-            if not factor:
-                raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
-            self._factor = factor
-            self.analyses += 1
-        assert self._factor is not None and self._common is not None
+            if factor:
+                self._factor = factor
+                self.analyses += 1
+                break
+        if self._factor is None:
+            raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
+        assert self._common is not None
         api.factorize(ctypes.byref(a_struct), self._factor, self._common)
         if not _positive_definite(self._factor.contents):
             self._free_factor()  # a failed factorisation is not reused (the pattern is)
@@ -414,8 +469,7 @@ class ReusedAnalysis:
     def expect(self, pattern: sp.spmatrix | sp.sparray) -> None:
         """Take ``pattern``'s structure (symmetric, ``n x n``; its values are ignored) as the one to analyse
         next: the matrices that follow have entries within it (e.g. ``|J|^T |W| |J|`` for ``J^T W J``)."""
-        csc = sp.csc_matrix(pattern)
-        csc.sort_indices()
+        csc = _sorted_csc(pattern)
         self._free_factor()
         self._pattern = (
             np.ascontiguousarray(csc.indptr, dtype=np.int64).copy(), np.ascontiguousarray(csc.indices, dtype=np.int64).copy()

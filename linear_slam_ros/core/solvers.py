@@ -3,8 +3,9 @@
 Sparse backends, best first (measured on the joined maps' information matrices, README):
 
 1. the system CHOLMOD through ``ctypes`` (:mod:`linear_slam_ros.core.cholmod`): the same library
-   and numbers as 2., bit for bit, but it lets other threads run while it factorises (the node's
-   background merges need that);
+   and numbers as 2., bit for bit on symmetric matrices (on one that is symmetric only up to
+   round-off, the two may read different triangles), but it lets other threads run while it
+   factorises (the node's background merges need that);
 2. CHOLMOD through ``scikit-sparse``, built against the system SuiteSparse and OpenBLAS
    (``make`` installs Debian's ``libsuitesparse-dev`` and ``libopenblas-dev``);
 3. CHOLMOD through the ``cholespy`` wheel, which bundles the reference BLAS: fine on very sparse

@@ -418,9 +418,11 @@ def _fuse(global_map: CovarianceMap, submap: LocalMap) -> CovarianceMap:
         cols_c = _sym_columns(g.cov_tilde, sc_global)  # S~[:, c]
         u_tilde = cols_c @ q_cc.T  # Q^-1 S[:, c]
         s_cc = q_cc @ u_tilde[sc_global]  # S[c, c]
-        # (I + M S_cc)^-1 M; I + M S_cc is never singular (its eigenvalues, those of
-        # I + S_cc^1/2 M S_cc^1/2, are >= 1), and a weight spoilt by rounding fails potrf below.
-        weight = _gesv(np.eye(c) + marginal @ s_cc, marginal)[2]
+        # (I + M S_cc)^-1 M. With M positive semi-definite I + M S_cc is never singular (its
+        # eigenvalues, those of I + S_cc^1/2 M S_cc^1/2, are >= 1); gesv would then return M as it is.
+        _, _, weight, info_code = _gesv(np.eye(c) + marginal @ s_cc, marginal)
+        if info_code != 0:
+            raise SolverError(f"submap {submap.name!r}: the joint system of its common variables is singular")
         weight = 0.5 * (weight + weight.T)
         innovation = z[sc_local] - x[sc_global]
         delta = np.zeros((n_g, 1))

@@ -168,3 +168,63 @@ def test_cholmod_reads_a_csr_matrix_as_its_transpose_without_touching_it(rng):
     before = shuffled.indices.copy()
     np.testing.assert_allclose(cholmod.solve_spd(shuffled, b), cholmod.solve_spd(m.tocsc(), b), rtol=1e-12)
     np.testing.assert_array_equal(shuffled.indices, before)  # the caller's arrays are not sorted in place
+
+
+def test_cholmod_refuses_a_matrix_that_is_not_square_or_a_right_hand_side_of_another_size(rng):
+    from linear_slam_ros.core import cholmod
+
+    m = _spd(50, rng)
+    with pytest.raises(SolverError, match=r"matrix is square, got shape \(50, 49\)"):
+        cholmod.solve_spd(m[:, :49], np.ones(50))
+    with pytest.raises(SolverError, match=r"right-hand side of shape \(3,\) for a 50x50 system"):
+        cholmod.solve_spd(m, np.ones(3))
+    with pytest.raises(SolverError, match=r"right-hand side of shape \(49, 2\) for a 50x50 system"):
+        cholmod.Factor(m).solve(np.ones((49, 2)))
+    solver = cholmod.ReusedAnalysis()
+    try:
+        with pytest.raises(SolverError, match=r"right-hand side of shape \(51,\) for a 50x50 system"):
+            solver.solve(m, np.ones(51))
+    finally:
+        solver.close()
+
+
+def test_an_int_analysis_that_fails_is_retried_through_the_long_interface(rng, monkeypatch):
+    import ctypes
+    import dataclasses
+
+    from linear_slam_ros.core import cholmod
+
+    m, b = _spd(300, rng), rng.normal(size=300)
+    expected = cholmod.solve_spd(m, b)
+    lib, int_api, long_api = cholmod._LOADED
+    refusing = dataclasses.replace(int_api, analyze=lambda *_: ctypes.POINTER(cholmod._Factor)())  # NULL: "too large"
+    monkeypatch.setattr(cholmod, "_LOADED", (lib, refusing, long_api))
+    np.testing.assert_array_equal(cholmod.solve_spd(m, b), expected)
+    factor = cholmod.Factor(m)
+    assert factor._api is long_api
+    np.testing.assert_array_equal(factor.solve(b), expected)
+    solver = cholmod.ReusedAnalysis()
+    try:
+        np.testing.assert_array_equal(solver.solve(m, b), expected)
+        assert solver._api is long_api and solver.analyses == 1
+    finally:
+        solver.close()
+    monkeypatch.setattr(cholmod, "_LOADED", (lib, refusing, dataclasses.replace(long_api, analyze=refusing.analyze)))
+    with pytest.raises(SolverError, match="CHOLMOD could not analyse a 300x300 system"):
+        cholmod.solve_spd(m, b)
+    with pytest.raises(SolverError, match="CHOLMOD could not analyse a 300x300 system"):
+        cholmod.Factor(m)
+    with pytest.raises(SolverError, match="CHOLMOD could not analyse a 300x300 system"):
+        cholmod.ReusedAnalysis().solve(m, b)
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
+def test_a_factor_without_the_library_says_so_and_is_collected_quietly(monkeypatch):
+    import gc
+
+    from linear_slam_ros.core import cholmod
+
+    monkeypatch.setattr(cholmod, "_LIB", None)
+    with pytest.raises(SolverError, match=r"CHOLMOD \(libcholmod\) is not installed"):
+        cholmod.Factor(sp.eye(3, format="csr"))
+    gc.collect()

@@ -150,3 +150,38 @@ def test_symmetric_columns_of_the_stored_lower_triangle(rng):
     lower = np.tril(full) + np.triu(rng.normal(size=(9, 9)), 1)  # what lies above the diagonal is never read
     cols = np.array([0, 4, 8, 5])
     np.testing.assert_array_equal(_sym_columns(lower, cols), full[:, cols])
+
+
+def test_a_submap_that_cannot_be_fused_is_refused_with_the_reason(rng, monkeypatch):
+    import linear_slam_ros.joining.sequential as sequential
+
+    maps = noisy_local_maps(make_world(2, 12, 30, rng, loops=1.2), rng, 2)
+    state = sequential_step(SequentialState(), maps[0])
+    for submap in maps[1:]:  # the first submap with both new variables and variables the map holds
+        lookup = state.global_map.key_set
+        is_new = np.array([k not in lookup for k in submap.keys.tolist()])
+        if is_new.any() and not is_new.all():
+            break
+        state = sequential_step(state, submap)
+    new_scalar = int(submap.scalar_index(np.flatnonzero(is_new))[0])
+    info = submap.info_dense()
+    bad_new = info.copy()
+    bad_new[new_scalar, new_scalar] = -abs(bad_new[new_scalar, new_scalar])
+    with pytest.raises(SolverError, match=rf"submap '{submap.name}': information of its new variables is not positive definite"):
+        sequential_step(state, submap.replace(info=bad_new))
+    # common block changed so the submap's marginal on them is -delta I: (I + M S_cc)^-1 M is then negative definite
+    sc = submap.scalar_index(np.flatnonzero(~is_new))
+    sn = submap.scalar_index(np.flatnonzero(is_new))
+    marginal = info[np.ix_(sc, sc)] - info[np.ix_(sc, sn)] @ np.linalg.solve(info[np.ix_(sn, sn)], info[np.ix_(sn, sc)])
+    g = state.global_map
+    in_map = g.scalar_index([lookup[k] for k in submap.keys[~is_new].tolist()])
+    s_cc = g.cov[np.ix_(in_map, in_map)]
+    delta = 0.5 / np.linalg.eigvalsh(s_cc).max()
+    bad_common = info.copy()
+    bad_common[np.ix_(sc, sc)] -= marginal + delta * np.eye(sc.size)
+    with pytest.raises(SolverError, match=rf"submap '{submap.name}': joint information is not positive definite"):
+        sequential_step(state, submap.replace(info=bad_common))
+    real_gesv = sequential._gesv
+    monkeypatch.setattr(sequential, "_gesv", lambda a, b: (*real_gesv(a, b)[:3], 2))  # LAPACK: U(2, 2) is zero
+    with pytest.raises(SolverError, match=rf"submap '{submap.name}': the joint system of its common variables is singular"):
+        sequential_step(state, submap)

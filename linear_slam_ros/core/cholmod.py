@@ -207,6 +207,38 @@ def _check_rhs(rhs: FloatArray, n: int) -> None:
         raise SolverError(f"right-hand side of shape {rhs.shape} for a {n}x{n} system")
 
 
+@dataclass(frozen=True)
+class _Analysis:
+    """An analysed matrix: the interface its workspace was started for, the factor, and CHOLMOD's
+    views of the matrix and the right-hand side with the index arrays they point into (kept alive)."""
+
+    api: _Api
+    factor: Any
+    a_struct: _Sparse
+    b_struct: _Dense
+    arrays: tuple[IndexArray, IndexArray]
+
+
+def _analyze(
+    api: _Api, common: Any, n: int, indptr: IndexArray, indices: IndexArray, data: FloatArray, b: FloatArray
+) -> _Analysis:
+    """Start ``common`` for ``api`` and analyse the matrix; an ``int`` analysis that fails is retried
+    through the ``long`` interface (the factor's entries must fit in 32 bits too).
+
+    Raises:
+        SolverError: neither interface could analyse it (``common`` is finished then).
+    """
+    for attempt in [api] if api is _long_api() else [api, _long_api()]:
+        native = _in_type(attempt, indptr, indices)
+        a_struct, b_struct = _structs(attempt, n, *native, data, b)
+        attempt.start(common)
+        factor = attempt.analyze(ctypes.byref(a_struct), common)
+        if factor:
+            return _Analysis(attempt, factor, a_struct, b_struct, native)
+        attempt.finish(common)
+    raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
+
+
 def _structs(
     api: _Api, n: int, indptr: IndexArray, indices: IndexArray, data: FloatArray, b: FloatArray
 ) -> tuple[_Sparse, _Dense]:
@@ -259,27 +291,16 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     api, n, indptr, indices, data = _native_csc(matrix)
     b = np.asfortranarray(rhs, dtype=np.float64)
     _check_rhs(b, n)
-    a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
     common = ctypes.create_string_buffer(_COMMON_BYTES)
-    api.start(common)
-    factor = api.analyze(ctypes.byref(a_struct), common)
-    if not factor and api is not _long_api():  # too large for the int interface: the long one
-        api.finish(common)
-        api = _long_api()
-        indptr, indices = _in_type(api, indptr, indices)
-        a_struct, b_struct = _structs(api, n, indptr, indices, data, b)
-        api.start(common)
-        factor = api.analyze(ctypes.byref(a_struct), common)
+    analysis = _analyze(api, common, n, indptr, indices, data, b)
+    api, factor = analysis.api, analysis.factor
     try:
-        if not factor:
-            raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
-        api.factorize(ctypes.byref(a_struct), factor, common)
+        api.factorize(ctypes.byref(analysis.a_struct), factor, common)
         if not _positive_definite(factor.contents):
             raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        return _solve(api, factor, b_struct, b, common)
+        return _solve(api, factor, analysis.b_struct, b, common)
     finally:
-        if factor:
-            api.free_factor(ctypes.byref(factor), common)
+        api.free_factor(ctypes.byref(factor), common)
         api.finish(common)
 
 
@@ -299,23 +320,12 @@ class Factor:
         self._common: ctypes.Array[ctypes.c_char] | None = None  # set once the interface is known (close() reads both)
         if _LIB is None:
             raise SolverError("CHOLMOD (libcholmod) is not installed")
-        self._api, self.n, indptr, indices, data = _native_csc(matrix)
-        self._common = ctypes.create_string_buffer(_COMMON_BYTES)
-        self._api.start(self._common)
-        a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
-        factor = self._api.analyze(ctypes.byref(a_struct), self._common)
-        if not factor and self._api is not _long_api():  # too large for the int interface: the long one
-            self._api.finish(self._common)
-            self._api = _long_api()
-            indptr, indices = _in_type(self._api, indptr, indices)
-            a_struct, _ = _structs(self._api, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
-            self._api.start(self._common)
-            factor = self._api.analyze(ctypes.byref(a_struct), self._common)
-        if not factor:
-            self.close()
-            raise SolverError(f"CHOLMOD could not analyse a {self.n}x{self.n} system (out of memory?)")
-        self._factor = factor
-        self._api.factorize(ctypes.byref(a_struct), factor, self._common)
+        api, self.n, indptr, indices, data = _native_csc(matrix)
+        common = ctypes.create_string_buffer(_COMMON_BYTES)
+        analysis = _analyze(api, common, self.n, indptr, indices, data, np.zeros((self.n, 1), order="F"))
+        self._api, self._common, self._factor = analysis.api, common, analysis.factor
+        factor = analysis.factor
+        self._api.factorize(ctypes.byref(analysis.a_struct), factor, self._common)
         if not _positive_definite(factor.contents):
             self.close()
             raise SolverError(f"information matrix of size {self.n} is not positive definite (CHOLMOD)")
@@ -404,26 +414,17 @@ class ReusedAnalysis:
             within = self._within_pattern(n, indptr, indices, data)
             assert within is not None
         indptr, indices, data = within  # the kept pattern, this matrix's entries in it (explicit zeros elsewhere)
-        api = self._api if self._factor is not None and self._api is not None else _api(n, indices.size)
-        for attempt in [api] if api is _long_api() else [api, _long_api()]:  # an int analysis too large: the long one
-            if attempt is not self._api:  # a workspace serves one interface
-                self._finish()
-                self._common = ctypes.create_string_buffer(_COMMON_BYTES)
-                attempt.start(self._common)
-                self._api = attempt
-            api = attempt
-            native_indptr, native_indices = _in_type(api, indptr, indices)  # kept alive while CHOLMOD reads them
-            a_struct, b_struct = _structs(api, n, native_indptr, native_indices, data, b)
-            if self._factor is not None:
-                break
-            factor = api.analyze(ctypes.byref(a_struct), self._common)
-            if factor:
-                self._factor = factor
-                self.analyses += 1
-                break
-        if self._factor is None:
-            raise SolverError(f"CHOLMOD could not analyse a {n}x{n} system (out of memory?)")
-        assert self._common is not None
+        if self._factor is None or self._api is None or self._common is None:  # a new pattern: a fresh workspace
+            self._finish()
+            common = ctypes.create_string_buffer(_COMMON_BYTES)
+            analysis = _analyze(_api(n, indices.size), common, n, indptr, indices, data, b)
+            self._api, self._common, self._factor = analysis.api, common, analysis.factor
+            self.analyses += 1
+            native, a_struct, b_struct = analysis.arrays, analysis.a_struct, analysis.b_struct
+        else:
+            native = _in_type(self._api, indptr, indices)  # kept alive while CHOLMOD reads them
+            a_struct, b_struct = _structs(self._api, n, *native, data, b)
+        api = self._api
         api.factorize(ctypes.byref(a_struct), self._factor, self._common)
         if not _positive_definite(self._factor.contents):
             self._free_factor()  # a failed factorisation is not reused (the pattern is)

@@ -163,6 +163,8 @@ def test_a_submap_that_cannot_be_fused_is_refused_with_the_reason(rng, monkeypat
         if is_new.any() and not is_new.all():
             break
         state = sequential_step(state, submap)
+    else:
+        pytest.fail("no submap of the stream has both new variables and variables the map holds")
     new_scalar = int(submap.scalar_index(np.flatnonzero(is_new))[0])
     info = submap.info_dense()
     bad_new = info.copy()

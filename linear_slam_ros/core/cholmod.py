@@ -183,11 +183,10 @@ def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.i
 
 
 def _native_csc(matrix: sp.spmatrix | sp.sparray) -> tuple[_Api, int, IndexArray, IndexArray, FloatArray]:
-    """Return the interface for symmetric ``matrix`` and its sorted CSC arrays (:func:`_sorted_csc`) in that
-    interface's index type: scipy's arrays as they are when their types already fit (no copy)."""
+    """Return the interface for symmetric ``matrix`` and its sorted CSC arrays (:func:`_sorted_csc`), as
+    scipy holds them: :func:`_analyze` puts the indices in the interface's type (a copy only if they differ)."""
     csc = _sorted_csc(matrix)
-    api = _api(csc.shape[0], csc.nnz)
-    return api, csc.shape[0], *_in_type(api, csc.indptr, csc.indices), np.ascontiguousarray(csc.data, dtype=np.float64)
+    return _api(csc.shape[0], csc.nnz), csc.shape[0], csc.indptr, csc.indices, np.ascontiguousarray(csc.data, dtype=np.float64)
 
 
 def _in_type(api: _Api, indptr: IndexArray, indices: IndexArray) -> tuple[IndexArray, IndexArray]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -65,6 +66,62 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
     Raises:
         InvalidMapError: the maps differ in dimension or frame.
     """
+    return union_system(map_a, map_b).solve(name)
+
+
+@dataclass(frozen=True, eq=False)
+class UnionSystem:
+    """The least squares of two maps in one frame, set up and not yet solved (eqs. 16-17).
+
+    It holds none of the two maps' information matrices, only their sum: a caller that made the
+    maps for this join (a change of frame) lets them go before the factorisation, the largest
+    allocation of a join (peak memory, README "Scale").
+
+    Attributes:
+        dim: 2 or 3.
+        frame_id: the shared frame pose.
+        end_id: the joined map's end pose (the later map's, else the earlier's).
+        ids: ``(m,)`` variable ids of the union, the earlier map's first.
+        kinds: ``(m,)`` their kinds.
+        layout: their sizes and offsets in the ``(n,)`` union state.
+        keys: ``(m,)`` their keys; ``key_set`` maps each key to its index.
+        key_set: key to variable index.
+        info: ``(n, n)`` joined information ``A^T I_Z A`` (dense up to :data:`DENSE_MAX`, else canonical CSR).
+        rhs: ``(n,)`` ``A^T I_Z Z``; ``None`` when the maps share nothing (``x`` is then known).
+        x: ``(n,)`` the estimate when nothing is shared, else ``None``.
+    """
+
+    dim: int
+    frame_id: int
+    end_id: int | None
+    ids: IntArray
+    kinds: npt.NDArray[np.int8]
+    layout: StateLayout
+    keys: IntArray
+    key_set: dict[int, int]
+    info: FloatArray | sp.csr_matrix
+    rhs: FloatArray | None
+    x: FloatArray | None
+
+    def solve(self, name: str = GLOBAL_NAME) -> LocalMap:
+        """Solve the system: the joined map, in the shared frame.
+
+        Raises:
+            SolverError: the joined information is not positive definite.
+        """
+        x = self.x if self.rhs is None else _solve_spd(self.info, self.rhs)
+        assert x is not None
+        joined = LocalMap.trusted(self.dim, self.frame_id, self.end_id, self.ids, self.kinds, x, self.info, name, self.layout)
+        seed_key_lookup(joined, self.keys, self.key_set)
+        return joined
+
+
+def union_system(map_a: LocalMap, map_b: LocalMap) -> UnionSystem:
+    """Set up :func:`join_in_shared_frame`'s least squares for two maps in the same frame, unsolved.
+
+    Raises:
+        InvalidMapError: the maps differ in dimension or frame.
+    """
     if map_a.dim != map_b.dim:
         raise InvalidMapError(f"cannot join a {map_a.dim}D map {map_a.name!r} with a {map_b.dim}D map {map_b.name!r}")
     if map_a.frame_id != map_b.frame_id:
@@ -100,17 +157,16 @@ def join_in_shared_frame(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NA
             ref = z_a[b_to_union[common_angles]]
             z_b[common_angles] = ref + wrap_angle(z_b[common_angles] - ref)
 
-    x, joined_info = solve_union(map_a.info, z_a, map_b.info, z_b, b_to_union, n)
+    joined_info, rhs, x = _union_normal_equations(map_a.info, z_a, map_b.info, z_b, b_to_union, n)
     end_id = map_b.end_id if map_b.end_id is not None else map_a.end_id
     new_keys = keys_b[new]
     ids = np.concatenate([map_a.ids, map_b.ids[new]])
     kinds = np.concatenate([map_a.kinds, map_b.kinds[new]])
     layout = StateLayout(map_a.dim, kinds, known_sizes=sizes, known_offsets=offsets)
-    joined = LocalMap.trusted(map_a.dim, map_a.frame_id, end_id, ids, kinds, x, joined_info, name, layout)
     key_set = dict(lookup)
     key_set.update(zip(new_keys.tolist(), range(m_a, m_a + n_new_vars), strict=True))
-    seed_key_lookup(joined, np.concatenate([map_a.keys, new_keys]), key_set)
-    return joined
+    keys = np.concatenate([map_a.keys, new_keys])
+    return UnionSystem(map_a.dim, map_a.frame_id, end_id, ids, kinds, layout, keys, key_set, joined_info, rhs, x)
 
 
 def solve_union(
@@ -128,6 +184,20 @@ def solve_union(
     :data:`DENSE_MAX` scalars, else CSR with sorted indices and no duplicates). With nothing in
     common there is nothing to solve.
     """
+    info, rhs, x = _union_normal_equations(info_a, z_a, info_b, z_b, b_to_union, n)
+    return (x if rhs is None else _solve_spd(info, rhs)), info  # type: ignore[return-value]
+
+
+def _union_normal_equations(
+    info_a: InfoMatrix,
+    z_a: FloatArray,
+    info_b: InfoMatrix,
+    z_b: FloatArray,
+    b_to_union: IntArray,
+    n: int,
+) -> tuple[FloatArray | sp.csr_matrix, FloatArray | None, FloatArray | None]:
+    """:func:`solve_union`'s ``A^T I_Z A`` and ``A^T I_Z Z``, or, when the maps share nothing, ``A^T I_Z A``,
+    ``None`` and the estimate (both side by side)."""
     n_a = z_a.size
     disjoint = b_to_union.size == 0 or int(b_to_union.min()) >= n_a
     if n <= DENSE_MAX:
@@ -137,30 +207,39 @@ def solve_union(
         rows, cols = b_to_union[:, None], b_to_union[None, :]
         if disjoint:  # the least-squares solution is both estimates side by side
             info[rows, cols] = dense_b
-            x = np.empty(n)
-            x[:n_a] = z_a
-            x[b_to_union] = z_b
-            return x, info
+            return info, None, _side_by_side(z_a, z_b, b_to_union, n)
         info[rows, cols] += dense_b
         rhs = np.zeros(n)
         rhs[:n_a] = dense_a @ z_a
         rhs[b_to_union] += dense_b @ z_b
-        return solve_dense_spd(info, rhs), info
+        return info, rhs, None
     csr_a, csr_b = canonical_csr(info_a), canonical_csr(info_b)
     joined = _padded(csr_a, n) + scatter_csr(csr_b, b_to_union, n)  # both canonical: one merge pass
     if disjoint:
-        x = np.empty(n)
-        x[:n_a] = z_a
-        x[b_to_union] = z_b
-        return x, joined
+        return joined, None, _side_by_side(z_a, z_b, b_to_union, n)
     rhs = np.zeros(n)
     rhs[:n_a] = csr_a @ z_a
     rhs[b_to_union] += csr_b @ z_b
+    return joined, rhs, None
+
+
+def _side_by_side(z_a: FloatArray, z_b: FloatArray, b_to_union: IntArray, n: int) -> FloatArray:
+    x = np.empty(n)
+    x[: z_a.size] = z_a
+    x[b_to_union] = z_b
+    return x
+
+
+def _solve_spd(info: FloatArray | sp.csr_matrix, rhs: FloatArray) -> FloatArray:
+    """Solve the joined normal equations (dense or canonical CSR information)."""
+    if not sp.issparse(info):
+        return solve_dense_spd(info, rhs)
+    n = info.shape[0]
     # CHOLMOD reads one triangle of a CSC matrix: the CSR arrays read as CSC are the transpose,
     # whose lower triangle is the upper one of the (symmetric) information: no conversion.
-    as_csc = sp.csc_matrix((joined.data, joined.indices, joined.indptr), shape=(n, n))
+    as_csc = sp.csc_matrix((info.data, info.indices, info.indptr), shape=(n, n))
     as_csc.has_sorted_indices = True
-    return solve_sparse_spd(as_csc, rhs), joined
+    return solve_sparse_spd(as_csc, rhs)
 
 
 def canonical_csr(matrix: InfoMatrix) -> sp.csr_matrix:
@@ -237,13 +316,14 @@ def join_at_seam(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NAME) -> L
         return join_in_shared_frame(map_a, map_b, name)
     seam = map_a.end_id
     if seam is None:
-        return join_in_shared_frame(*align_frames(map_a, map_b), name)
+        return union_system(*align_frames(map_a, map_b)).solve(name)
     if map_b.frame_id != seam and not map_b.has_pose(seam):
         raise FrameError(
             f"map {map_b.name!r} (frame pose {map_b.frame_id}) does not hold pose {seam}, the end pose of map "
             f"{map_a.name!r} (frame pose {map_a.frame_id}): the maps share no frame"
         )
-    return join_in_shared_frame(change_frame(map_a, seam), change_frame(map_b, seam), name)
+    # the moved maps are let go once their sum is formed, before the factorisation (peak memory)
+    return union_system(change_frame(map_a, seam), change_frame(map_b, seam)).solve(name)
 
 
 def join_pair(map_a: LocalMap, map_b: LocalMap, name: str = GLOBAL_NAME) -> LocalMap:

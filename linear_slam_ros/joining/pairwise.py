@@ -185,7 +185,10 @@ def solve_union(
     common there is nothing to solve.
     """
     info, rhs, x = _union_normal_equations(info_a, z_a, info_b, z_b, b_to_union, n)
-    return (x if rhs is None else _solve_spd(info, rhs)), info  # type: ignore[return-value]
+    if rhs is not None:
+        x = _solve_spd(info, rhs)
+    assert x is not None
+    return x, info
 
 
 def _union_normal_equations(

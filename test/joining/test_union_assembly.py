@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -9,6 +11,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+from linear_slam_ros.joining import pairwise
 from linear_slam_ros.joining.pairwise import canonical_csr, join_at_seam, scatter_csr, solve_union
 
 
@@ -61,3 +64,34 @@ def test_derived_key_lookups_equal_fresh_ones(dim, rng):
     assert _lookup_is_consistent(joined)
     moved = change_frame(joined, int(joined.pose_ids[0]))
     assert _lookup_is_consistent(moved)
+
+
+def test_a_seam_join_lets_the_moved_maps_go_before_it_factorises(rng, monkeypatch):
+    """Peak memory: the maps moved to the seam are not alive while the union is factorised."""
+    world = make_world(2, n_poses=24, n_features=30, rng=rng)
+    maps = noisy_local_maps(world, rng, steps_per_map=4)
+    a = join_at_seam(maps[0], maps[1])  # in maps[0]'s frame, its end pose elsewhere: it moves
+    b = maps[2]
+    assert a.frame_id != a.end_id and b.frame_id == a.end_id
+    moved: list[weakref.ref] = []
+    alive_at_solve: list[int] = []
+    real_change, real_solve = pairwise.change_frame, pairwise._solve_spd
+
+    def noting_change(local_map, frame_id):
+        out = real_change(local_map, frame_id)
+        if out is not local_map:
+            moved.append(weakref.ref(out))
+        return out
+
+    def noting_solve(info, rhs):
+        alive_at_solve.append(sum(ref() is not None for ref in moved))
+        return real_solve(info, rhs)
+
+    monkeypatch.setattr(pairwise, "change_frame", noting_change)
+    monkeypatch.setattr(pairwise, "_solve_spd", noting_solve)
+    joined = join_at_seam(a, b)
+    assert len(moved) == 1 and alive_at_solve == [0]
+    monkeypatch.undo()
+    expected = pairwise.join_in_shared_frame(change_frame(a, a.end_id), b)
+    np.testing.assert_array_equal(joined.x, expected.x)
+    np.testing.assert_array_equal(joined.ids, expected.ids)

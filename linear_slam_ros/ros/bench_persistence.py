@@ -51,17 +51,14 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
-from rclpy.serialization import deserialize_message
-from std_msgs.msg import Float64MultiArray
 
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
-from linear_slam_ros.ros.demo import joiner_command
+from linear_slam_ros.ros.demo import decode_global_map, joiner_command
 from linear_slam_ros.ros.player import play
 from linear_slam_ros.ros.process import loopback_env, stop_process
 from linear_slam_ros.ros.spin import LatestMessage, diagnostic_values, node_session, spin_until
-from msg_adapters import MapMessage, decode_map
-from msg_adapters.ros import parts
+from msg_adapters import MapMessage
 
 DATASETS = ("VicPark_6898_local_maps", "manhattanOlson3500")
 MODE = "online-dc"
@@ -173,11 +170,6 @@ class JoinerRun:
     def output(self) -> str:
         """Return what the process wrote (stdout and stderr) so far."""
         return self.log.read_text(errors="replace") if self.log.exists() else ""
-
-
-def decode_global_map(raw: bytes) -> MapMessage:
-    """Return the decoded ``global_map`` message of its CDR bytes (as the ROS tests decode it)."""
-    return decode_map(*parts(deserialize_message(raw, Float64MultiArray)))
 
 
 def dataset_bag(archive: Path, bags_dir: Path) -> Path:

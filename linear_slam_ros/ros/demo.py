@@ -32,6 +32,7 @@ from pathlib import Path
 from std_msgs.msg import Float64MultiArray
 
 from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.limits import OUTPUT_LIMITS
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.plots import plot_map
@@ -76,8 +77,8 @@ def start_joiner(params: dict[str, object], env: dict[str, str]) -> subprocess.P
 
 
 def decode_global_map(raw: bytes) -> MapMessage:
-    """Return the decoded ``global_map`` message of its CDR bytes."""
-    return decode_map(*bag_parts(deserialize(raw)))
+    """Return the decoded ``global_map`` message of its CDR bytes (the node's output: :data:`OUTPUT_LIMITS`)."""
+    return decode_map(*bag_parts(deserialize(raw)), limits=OUTPUT_LIMITS)
 
 
 def decode_refined_map(raw: bytes) -> tuple[MapMessage, dict[str, float]]:
@@ -90,7 +91,7 @@ def decode_refined_map(raw: bytes) -> tuple[MapMessage, dict[str, float]]:
         start = sum(int(s) for s in sizes[: labels.index("refine")])
         segment = dict(zip(REFINE_FIELDS, (float(v) for v in data[start : start + int(sizes[labels.index("refine")])]),
                            strict=False))
-    return decode_map(labels, sizes, data, offset), segment
+    return decode_map(labels, sizes, data, offset, limits=OUTPUT_LIMITS), segment
 
 
 REFINED_WITHIN = 1e-3

@@ -63,3 +63,23 @@ def test_sim_demo_refuses_bad_sizes_before_starting_anything(tmp_path, capsys):
     with pytest.raises(ConfigError, match=r"--sim-rate -1\.0 positive"):
         run_sim_demo(tmp_path, n_maps=5, rate=-1.0)
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_the_demo_reads_a_global_map_beyond_the_inputs_condition_bound():
+    """The node's outputs are read without the inputs' condition bound (a large map's end frame exceeds it)."""
+    import numpy as np
+
+    from linear_slam_ros.core.errors import InvalidMapError
+    from linear_slam_ros.core.local_map import POSE, LocalMap, to_dense
+    from linear_slam_ros.ros.demo import decode_global_map
+    from msg_adapters import MAP_KIND_GLOBAL, decode_map, encode_map
+    from msg_adapters.bags import bag_parts, deserialize, serialize
+
+    info = np.diag([1e11, 1e11, 1e11, 1e-4, 1e-4, 1e-4])  # condition number 1e15, every entry within bounds
+    local_map = LocalMap.trusted(2, 0, 2, np.array([1, 2]), np.array([POSE, POSE], dtype=np.int8), np.arange(6.0), info)
+    raw = serialize(encode_map(local_map, 7, map_kind=MAP_KIND_GLOBAL))
+    with pytest.raises(InvalidMapError, match=r"too ill-conditioned .* above the limit max_condition = 1e\+14"):
+        decode_map(*bag_parts(deserialize(raw)))
+    decoded = decode_global_map(raw)
+    np.testing.assert_array_equal(decoded.local_map.x, local_map.x)
+    np.testing.assert_array_equal(to_dense(decoded.local_map.info), info)

@@ -2,8 +2,9 @@
 
 Online divide and conquer holds the global map as a stack of joined parts, each starting where
 the one before it ends (:func:`~linear_slam_ros.joining.divide_conquer.leaf_maps`). The newest
-end pose in the first pose's frame is then a product of one relative pose per part: cheap
-enough to publish on every arrival, long before the parts are merged into the global map.
+end pose in the first pose's frame is then a product of one relative pose per part
+(:func:`relative_end`): cheap enough to publish on every arrival, long before the parts are
+merged into the global map.
 It is each part's own estimate chained together; the merged map, which also weighs the
 overlaps between parts, refines it.
 """
@@ -58,53 +59,21 @@ def compose(dim: int, pose_a: FloatArray, pose_ab: FloatArray) -> FloatArray:
     return compose_relative(dim, pose_a, pose_ab)
 
 
-class PoseChain:
-    """:func:`chain_end_pose` that remembers its last chain, so a call redoes only the parts that changed.
+def relative_end(part: ChainPart, start_id: int) -> tuple[int, FloatArray] | None:
+    """Return the part's end pose seen from pose ``start_id`` (the end of the chain before it).
 
-    Online D&C's stack changes at its top: from one arrival to the next, the older parts are the
-    same objects, so their chained end poses are reused (the cache holds the parts themselves,
-    so an identity cannot be reused by a new object while it is cached).
+    Returns:
+        ``(end pose id, pose (3,) or (6,))``, or ``None`` when the part has no end pose or
+        neither is in nor holds pose ``start_id``.
     """
-
-    def __init__(self) -> None:
-        self._parts: list[ChainPart] = []
-        self._ends: list[tuple[int, FloatArray]] = []
-        self._frame_pose_id: int | None = None
-
-    def end_pose(self, parts: Sequence[ChainPart], frame_pose_id: int) -> tuple[int, FloatArray] | None:
-        """Return what :func:`chain_end_pose` returns, reusing the common prefix of the last call."""
-        keep = 0
-        if frame_pose_id == self._frame_pose_id:
-            for old, new in zip(self._parts, parts, strict=False):
-                if old is not new:
-                    break
-                keep += 1
-        self._parts, self._ends, self._frame_pose_id = list(parts[:keep]), self._ends[:keep], frame_pose_id
-        start = self._ends[-1] if self._ends else (frame_pose_id, None)
-        for part in parts[keep:]:
-            end = _chain_step(part, *start)
-            if end is None:
-                return None
-            self._parts.append(part)
-            self._ends.append(end)
-            start = end
-        return self._ends[-1] if self._ends else None
-
-
-def _chain_step(part: ChainPart, end_id: int, t_end: FloatArray | None) -> tuple[int, FloatArray] | None:
-    """Move the chain's end (``end_id`` at world pose ``t_end``; ``None``: the origin) across one part."""
-    dim = part.dim
-    if t_end is None:
-        t_end = np.zeros(3 if dim == 2 else 6)
-    if part.frame_id == end_id:
-        t_frame = t_end
-    elif part.has_pose(end_id):  # the part's frame seen from the world: end, then back from end to frame
-        t_frame = compose(dim, t_end, inverse_pose(dim, part.pose(end_id)))
-    else:
-        return None
     if part.end_id is None:
         return None
-    return part.end_id, compose(dim, t_frame, part.pose(part.end_id))
+    end = part.pose(part.end_id)
+    if part.frame_id == start_id:
+        return part.end_id, end
+    if part.has_pose(start_id):  # back from the start pose to the part's frame, then to its end
+        return part.end_id, compose(part.dim, inverse_pose(part.dim, part.pose(start_id)), end)
+    return None
 
 
 def chain_end_pose(parts: Sequence[ChainPart], frame_pose_id: int) -> tuple[int, FloatArray] | None:
@@ -120,10 +89,10 @@ def chain_end_pose(parts: Sequence[ChainPart], frame_pose_id: int) -> tuple[int,
         parts have no end pose or do not chain (a part neither in nor holding its predecessor's
         end pose).
     """
-    end: tuple[int, FloatArray | None] = (frame_pose_id, None)
+    end_id, pose = frame_pose_id, None
     for part in parts:
-        step = _chain_step(part, *end)
+        step = relative_end(part, end_id)
         if step is None:
             return None
-        end = step
-    return None if end[1] is None else (end[0], end[1])
+        end_id, pose = step[0], step[1] if pose is None else compose(part.dim, pose, step[1])
+    return None if pose is None else (end_id, pose)

@@ -17,6 +17,7 @@ from linear_slam_ros.joining.chain import chain_end_pose
 from linear_slam_ros.joining.divide_conquer import (
     Deferred,
     OnlineDCState,
+    StackChain,
     leaf_maps,
     online_dc_result,
     online_dc_step,
@@ -184,3 +185,62 @@ def test_chained_pose_is_the_end_pose_of_the_merged_map_for_exact_maps(rng):
     np.testing.assert_allclose(pose, world.poses[end_id], atol=1e-9)
     assert chain_end_pose([], 0) is None
     assert chain_end_pose([maps[3]], maps[0].frame_id) is None  # does not hold the frame pose
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_stack_chain_equals_chaining_the_leaves_as_merges_land(dim, rng):
+    """StackChain (the node's fresh pose) gives chain_end_pose over the leaves, step after step, while
+    deferred merges stay pending or land in any order."""
+    world = make_world(dim, 70, 40, rng, loops=2.0)  # shared features: a merge moves its parts' poses
+    maps = noisy_local_maps(world, rng, steps_per_map=2)
+    chain = StackChain()
+    state = OnlineDCState(defer_above=0)  # every merge deferred: a deep pending tree
+    landed, moved = 0, 0.0
+    for i, m in enumerate(maps):
+        state = online_dc_step(state, m)
+        if i % 5 == 4:  # a merge lands somewhere in the pending tree (not necessarily the oldest)
+            pending = pending_joins(state.stack)
+            before = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
+            pending[int(rng.integers(len(pending)))].value()
+            after = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
+            moved = max(moved, float(np.abs(after[1] - before[1]).max()))
+            landed += 1
+        expected = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
+        got = chain.end_pose(state.stack, maps[0].frame_id)
+        assert got is not None and expected is not None and got[0] == expected[0]
+        np.testing.assert_allclose(got[1], expected[1], rtol=0, atol=1e-9)
+    assert landed > 3 and any(isinstance(e, Deferred) and not e.done for e in state.stack)
+    assert moved > 1e-6  # the landed merges changed the chained pose: a stale composition would show
+    assert chain.end_pose((), 0) is None
+    assert chain.end_pose(state.stack, maps[3].frame_id + 10_000) is None  # the first part does not hold it
+
+
+def test_the_stack_chain_recomposes_only_what_changed(rng, monkeypatch):
+    world = make_world(3, 70, 0, rng, loops=2.0)
+    maps = noisy_local_maps(world, rng, steps_per_map=2)
+    state = _run(maps, 0)  # 34 submaps, every merge pending
+    calls = {"relative_end": 0, "compose": 0}
+
+    def counted(name, real):
+        def wrapper(*args):
+            calls[name] += 1
+            return real(*args)
+
+        return wrapper
+
+    monkeypatch.setattr(divide_conquer, "relative_end", counted("relative_end", divide_conquer.relative_end))
+    monkeypatch.setattr(divide_conquer, "compose", counted("compose", divide_conquer.compose))
+    chain = StackChain()
+    first = chain.end_pose(state.stack, maps[0].frame_id)
+    assert calls["relative_end"] == len(leaf_maps(state.stack)) == len(maps)
+    calls.update(relative_end=0, compose=0)
+    assert chain.end_pose(state.stack, maps[0].frame_id) is first  # nothing changed: nothing recomputed
+    assert calls == {"relative_end": 0, "compose": 0}
+    pending = pending_joins(state.stack)
+    deepest = pending[0]  # inputs before results: a join of two submaps, at the bottom of the tree
+    deepest.value()
+    again = chain.end_pose(state.stack, maps[0].frame_id)
+    assert calls["relative_end"] == 1  # the landed merge's own relative pose, and nothing else's
+    assert 0 < calls["compose"] <= 2 * len(pending)  # along the path above it and the stack: not every leaf after it
+    expected = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
+    np.testing.assert_allclose(again[1], expected[1], rtol=0, atol=1e-9)

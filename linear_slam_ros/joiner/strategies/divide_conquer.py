@@ -13,12 +13,11 @@ from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import MMAP_THRESHOLD_RETURN, MMAP_THRESHOLD_REUSE
 from linear_slam_ros.joiner.strategy import PER_LEVEL, BatchStrategy, FoldStrategy, JoinMethod, MapType, PoseEstimate, Progress
-from linear_slam_ros.joining.chain import PoseChain
 from linear_slam_ros.joining.divide_conquer import (
     Deferred,
     OnlineDCState,
+    StackChain,
     join_divide_and_conquer,
-    leaf_maps,
     online_dc_result,
     online_dc_step,
     pending_joins,
@@ -66,12 +65,12 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
         return pending_joins(state.stack)
 
     def __init__(self) -> None:
-        self._chain = PoseChain()  # a cache only: the result depends on the state alone
+        self._chain = StackChain()  # a cache only: the result depends on the state alone
         self._entries = EntryCache()  # a cache only, for marginal()
 
     def current_pose(self, state: OnlineDCState, frame_pose_id: int) -> PoseEstimate | None:
-        """Chain the newest end pose along the stack's parts, computing no merge (only the changed parts)."""
-        return self._chain.end_pose(leaf_maps(state.stack), frame_pose_id)
+        """Chain the newest end pose along the stack's parts, computing no merge (only what changed: :class:`StackChain`)."""
+        return self._chain.end_pose(state.stack, frame_pose_id)
 
     def marginal(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> Marginal | None:
         """Return the merged stack's marginal of ``keys``: each entry reduced (its factorisation kept), the small maps joined.

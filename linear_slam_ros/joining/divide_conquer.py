@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TypeVar
@@ -226,9 +227,10 @@ def leaf_maps(stack: Sequence[Entry]) -> list[LocalMap]:
 
 Relative = tuple[int, FloatArray] | None
 """An entry's end pose id and pose seen from the end of the entry before it (``None``: no chain)."""
-_Cached = tuple["Entry", int, tuple[Relative, Relative] | None, Relative]
-"""A :class:`StackChain` cache entry: the entry, its start pose id, its inputs' relative poses (``None`` for a
-computed entry) and its own."""
+_Cached = tuple["weakref.ref[Entry]", int, tuple[Relative, Relative] | None, Relative]
+"""A :class:`StackChain` cache entry: the entry (weakly: a merge that lands lets its inputs go, and the
+cache must not keep them), its start pose id, its inputs' relative poses (``None`` for a computed
+entry) and its own."""
 
 
 class StackChain:
@@ -247,25 +249,25 @@ class StackChain:
     """
 
     def __init__(self) -> None:
-        self._relative: dict[int, _Cached] = {}  # by the entry's id (the entry is held: its id stays its own)
-        self._prefix: list[tuple[Entry, Relative, tuple[int, FloatArray]]] = []  # the last stack's entries, chained
+        self._relative: dict[int, _Cached] = {}  # by the entry's id, valid while the weak reference is to it
+        self._prefix: list[tuple[weakref.ref[Entry], Relative, tuple[int, FloatArray]]] = []  # the last stack, chained
 
     def end_pose(self, stack: Sequence[Entry], frame_pose_id: int) -> tuple[int, FloatArray] | None:
         """Return the newest end pose in the frame of pose ``frame_pose_id`` (see :func:`chain_end_pose`)."""
         relative: dict[int, _Cached] = {}
-        prefix: list[tuple[Entry, Relative, tuple[int, FloatArray]]] = []
+        prefix: list[tuple[weakref.ref[Entry], Relative, tuple[int, FloatArray]]] = []
         end: tuple[int, FloatArray | None] = (frame_pose_id, None)
         result: tuple[int, FloatArray] | None = None
         for i, entry in enumerate(stack):
             step = self._entry(entry, end[0], relative)
             if step is None:
                 break
-            same = i < len(self._prefix) and self._prefix[i][0] is entry and self._prefix[i][1] is step
+            same = i < len(self._prefix) and self._prefix[i][0]() is entry and self._prefix[i][1] is step
             if same and (i == 0 or prefix[-1][2] is self._prefix[i - 1][2]):
                 chained = self._prefix[i][2]
             else:
                 chained = step if end[1] is None else (step[0], compose(entry.dim, end[1], step[1]))
-            prefix.append((entry, step, chained))
+            prefix.append((weakref.ref(entry), step, chained))
             end = chained
         else:
             result = prefix[-1][2] if prefix else None
@@ -280,14 +282,14 @@ class StackChain:
             left = self._entry(inputs[0], start_id, memo)
             parts = (left, None if left is None else self._entry(inputs[1], left[0], memo))
         cached = self._relative.get(id(entry))
-        if cached is not None and cached[0] is entry and cached[1] == start_id and _same(cached[2], parts):
+        if cached is not None and cached[0]() is entry and cached[1] == start_id and _same(cached[2], parts):
             step = cached[3]
         elif parts is None:
             step = relative_end(resolve(entry), start_id)  # computed: resolve only reads its result
         else:
             left, right = parts
             step = None if left is None or right is None else (right[0], compose(entry.dim, left[1], right[1]))
-        memo[id(entry)] = (entry, start_id, parts, step)
+        memo[id(entry)] = (weakref.ref(entry), start_id, parts, step)
         return step
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import weakref
 
 import numpy as np
 import pytest
@@ -244,3 +245,20 @@ def test_the_stack_chain_recomposes_only_what_changed(rng, monkeypatch):
     assert 0 < calls["compose"] <= 2 * len(pending)  # along the path above it and the stack: not every leaf after it
     expected = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
     np.testing.assert_allclose(again[1], expected[1], rtol=0, atol=1e-9)
+
+
+def test_the_stack_chain_lets_a_landed_merges_inputs_go(rng):
+    """A merge that lands releases its inputs (peak memory): the chain's cache must not keep them."""
+    world = make_world(2, 40, 0, rng)
+    maps = exact_pose_graph_maps(world, rng)
+    state = _run(maps, 0)
+    chain = StackChain()
+    assert chain.end_pose(state.stack, maps[0].frame_id) is not None
+    oldest = state.stack[0]
+    assert isinstance(oldest, Deferred) and oldest.inputs is not None
+    assert all(isinstance(e, Deferred) for e in oldest.inputs)  # joins of joins: only the cache holds them besides
+    inputs = [weakref.ref(e) for e in oldest.inputs]
+    oldest.value()
+    assert [r() for r in inputs] == [None, None]
+    merged = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
+    np.testing.assert_allclose(chain.end_pose(state.stack, maps[0].frame_id)[1], merged[1], rtol=0, atol=1e-9)

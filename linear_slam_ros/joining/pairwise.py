@@ -109,8 +109,7 @@ class UnionSystem:
         Raises:
             SolverError: the joined information is not positive definite.
         """
-        x = self.x if self.rhs is None else _solve_spd(self.info, self.rhs)
-        assert x is not None
+        x = _estimate(self.info, self.rhs, self.x)
         joined = LocalMap.trusted(self.dim, self.frame_id, self.end_id, self.ids, self.kinds, x, self.info, name, self.layout)
         seed_key_lookup(joined, self.keys, self.key_set)
         return joined
@@ -185,10 +184,7 @@ def solve_union(
     common there is nothing to solve.
     """
     info, rhs, x = _union_normal_equations(info_a, z_a, info_b, z_b, b_to_union, n)
-    if rhs is not None:
-        x = _solve_spd(info, rhs)
-    assert x is not None
-    return x, info
+    return _estimate(info, rhs, x), info
 
 
 def _union_normal_equations(
@@ -231,6 +227,14 @@ def _side_by_side(z_a: FloatArray, z_b: FloatArray, b_to_union: IntArray, n: int
     x[: z_a.size] = z_a
     x[b_to_union] = z_b
     return x
+
+
+def _estimate(info: FloatArray | sp.csr_matrix, rhs: FloatArray | None, x: FloatArray | None) -> FloatArray:
+    """The joined estimate: ``x`` when the maps share nothing (``rhs`` is ``None``), else the solution."""
+    if rhs is None:
+        assert x is not None
+        return x
+    return _solve_spd(info, rhs)
 
 
 def _solve_spd(info: FloatArray | sp.csr_matrix, rhs: FloatArray) -> FloatArray:

@@ -54,11 +54,11 @@ from rclpy.node import Node
 
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import BagRecord, read_messages
-from linear_slam_ros.ros.demo import decode_global_map, joiner_command
+from linear_slam_ros.ros.demo import decode_global_summary, joiner_command
 from linear_slam_ros.ros.player import play
 from linear_slam_ros.ros.process import loopback_env, stop_process
 from linear_slam_ros.ros.spin import LatestMessage, diagnostic_values, node_session, spin_until
-from msg_adapters import MapMessage
+from msg_adapters import MapSummary
 
 DATASETS = ("VicPark_6898_local_maps", "manhattanOlson3500")
 MODE = "online-dc"
@@ -157,9 +157,9 @@ class JoinerRun:
         """Return the full name of one of this joiner's topics."""
         return f"/{self.namespace}/{name}"
 
-    def global_map(self, node: Node) -> LatestMessage[MapMessage]:
-        """Return a subscription to this joiner's latched ``global_map``."""
-        return LatestMessage(node, self.topic("global_map"), decode_global_map)
+    def global_map(self, node: Node) -> LatestMessage[MapSummary]:
+        """Return a subscription to this joiner's latched ``global_map`` (header and stats only)."""
+        return LatestMessage(node, self.topic("global_map"), decode_global_summary)
 
     def stop(self) -> tuple[int, float]:
         """Stop as Ctrl-C does; return the exit code and the seconds the stop took."""
@@ -201,7 +201,7 @@ def replay(
             # Gate on the cheap diagnostics first: a global map received is only decoded once looked at.
             diag.wait(lambda: diag.handled() >= n_sent, timeout_s, joiner.process)
 
-            def all_handled(m: MapMessage) -> bool:
+            def all_handled(m: MapSummary) -> bool:
                 return bool(m.n_submaps >= n_sent or (m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent))
 
             try:

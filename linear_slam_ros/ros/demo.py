@@ -48,7 +48,7 @@ from linear_slam_ros.ros.process import loopback_env, stop_process
 from linear_slam_ros.ros.qos import latched_qos
 from linear_slam_ros.ros.sim_frontend import Simulation
 from linear_slam_ros.ros.spin import LatestMessage, node_session, spin_until, wait_for_diagnostics
-from msg_adapters import MapMessage, decode_map
+from msg_adapters import MapMessage, MapSummary, decode_map, decode_map_summary
 from msg_adapters.bags import bag_parts, deserialize
 
 DEFAULT_DATASET = Path("bags/vicpark200")
@@ -79,6 +79,15 @@ def start_joiner(params: dict[str, object], env: dict[str, str]) -> subprocess.P
 def decode_global_map(raw: bytes) -> MapMessage:
     """Return the decoded ``global_map`` message of its CDR bytes (the node's output: :data:`OUTPUT_LIMITS`)."""
     return decode_map(*bag_parts(deserialize(raw)), limits=OUTPUT_LIMITS)
+
+
+def decode_global_summary(raw: bytes) -> MapSummary:
+    """Return the header and ``stats`` of a ``global_map`` message's CDR bytes, without its map.
+
+    What a waiting reader looks at in every message: decoding each of a city-sized stream's
+    global maps would take a core from the joiner on the same machine.
+    """
+    return decode_map_summary(*bag_parts(deserialize(raw)))
 
 
 def decode_refined_map(raw: bytes) -> tuple[MapMessage, dict[str, float]]:
@@ -135,12 +144,12 @@ def run_demo(
     # ("gated"), as does a held closure gated later: only every submap joined ends the wait then
     gate = float((params or {}).get("gate_probability", 0.0) or 0.0) > 0.0  # type: ignore[arg-type]
 
-    def all_handled(m: MapMessage) -> bool:
+    def all_handled(m: MapSummary) -> bool:
         counted = bool(m.stats and m.stats["n_joined"] + m.stats["n_rejected"] >= n_sent)
         return m.n_submaps >= n_sent or (counted and not gate)
 
     try:
-        with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_map) as latest:
+        with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_summary) as latest:
             if refine:  # every refined map (decoded at the end); as on a robot, the refiner process is up
                 # before the stream starts: its latched empty map says so
                 def keep(raw: bytes) -> None:
@@ -158,9 +167,10 @@ def run_demo(
                 latest.wait(all_handled, timeout_s, joiner)
             except ChildProcessError:
                 raise RuntimeError(f"joiner exited with code {joiner.returncode}") from None
-            message, raw = latest.value, latest.raw
-            if message is None or raw is None:
+            raw = latest.raw
+            if raw is None:
                 raise RuntimeError(f"no global_map received within {timeout_s:.0f} s")
+            message = decode_global_map(raw)
             seconds = latest.received_at - t0
             n_joined = message.n_submaps
             diagnostics = wait_for_diagnostics(node, lambda v: v.get("n_fresh_map", -1) >= n_joined, 10.0) or {}
@@ -275,16 +285,17 @@ def run_sim_demo(
     ]
     frontend: subprocess.Popen[bytes] | None = None
     try:
-        with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_map) as latest:
+        with node_session("demo") as node, LatestMessage(node, "global_map", decode_global_summary) as latest:
             t0 = time.monotonic()
             frontend = subprocess.Popen(sim_cmd, env=dict(os.environ))
             try:
                 latest.wait(lambda m: m.n_submaps >= n_maps, timeout_s, joiner)
             except ChildProcessError:
                 raise RuntimeError(f"joiner exited with code {joiner.returncode}") from None
-            message, raw = latest.value, latest.raw
-            if message is None or raw is None or message.n_submaps < n_maps:
+            summary, raw = latest.value, latest.raw
+            if summary is None or raw is None or summary.n_submaps < n_maps:
                 raise RuntimeError(f"no global_map of {n_maps} submaps within {timeout_s:.0f} s")
+            message = decode_global_map(raw)
             seconds = latest.received_at - t0
             diagnostics = wait_for_diagnostics(node, lambda v: v.get("n_fresh_map", -1) >= message.n_submaps, 10.0) or {}
     finally:

@@ -20,7 +20,7 @@ from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
 from linear_slam_ros.pose_graph.graph import PoseGraph
-from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, encode_chunk, encode_map
+from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, decode_map_summary, encode_chunk, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
 from msg_adapters.ros import parts, to_msg
 
@@ -117,6 +117,39 @@ def _mutate(enc, segment, values):
         data.append(np.asarray(values, dtype=float) if lab == segment else enc.data[pos : pos + size])
         pos += size
     return labels, [len(d) for d in data], np.concatenate(data)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_map_summary_is_the_header_and_stats_of_the_decoded_map(dim, rng):
+    local, global_map = _maps(dim, rng)
+    for m, kind, stats in ((local, 0, None), (global_map, MAP_KIND_GLOBAL, {"n_joined": 4.0, "join_ms_p99": 1.5})):
+        enc = encode_map(m, 17, Stamp(1_700_000_000, 123_456_789), kind, 4, stats)
+        raw_parts = bag_parts(deserialize(serialize(enc)))
+        full, summary = decode_map(*raw_parts), decode_map_summary(*raw_parts)
+        assert (summary.dim, summary.map_kind, summary.seq, summary.stamp, summary.n_submaps, summary.stats) == (
+            dim, full.map_kind, full.seq, full.stamp, full.n_submaps, full.stats)
+
+
+def test_map_summary_reads_no_map_and_checks_the_header(rng):
+    enc = _enc(rng)
+    labels, sizes, data = list(enc.labels), list(enc.sizes), enc.data
+    header = data[: sizes[0]].copy()
+    state_start = sizes[0] + sizes[1] + sizes[2]
+    bad_state = _mutate(enc, "state", np.r_[np.nan, data[state_start + 1 : state_start + sizes[3]]])
+    with pytest.raises(MessageError, match="non-finite values in segment"):
+        decode_map(*bad_state)
+    assert decode_map_summary(*bad_state).n_submaps == decode_map_summary(labels, sizes, data).n_submaps
+    cases = [
+        ((labels, sizes, data, 3), "layout.data_offset must be 0, got 3"),
+        ((labels, sizes, data[:-1]), "layout sizes add up to .* but data has"),
+        ((["other"] + labels[1:], sizes, data), "missing segment\\(s\\) \\['header'\\]"),
+        (_mutate(enc, "header", header[:5]), "header has 5 values, format 1 needs 9"),
+        (_mutate(enc, "header", np.r_[2, header[1:]]), "unsupported format version 2"),
+        (_mutate(enc, "header", np.r_[header[:3], np.inf, header[4:]]), "non-finite values in segment\\(s\\) \\['header'\\]"),
+    ]
+    for args, match in cases:
+        with pytest.raises(MessageError, match=match):
+            decode_map_summary(*args)
 
 
 def test_map_message_errors(rng):

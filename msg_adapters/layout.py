@@ -385,8 +385,8 @@ def decode_map_summary(
     """Read a map message's header and ``stats`` only: no array is built and the map is not checked.
 
     For a reader that waits for a given map (``n_submaps``, ``n_joined``...) among many large
-    ones and decodes only that one with :func:`decode_map`: a 20,000-pose global map takes
-    a fraction of a second to decode and check, its summary microseconds.
+    ones and decodes only that one with :func:`decode_map`: a 72 MB message (60,000 scalars,
+    3 M stored entries) took 4.1 s to deserialise, decode and check here, its summary 9 ms.
 
     Raises:
         MessageError: the layout or the header does not follow the contract.

@@ -556,6 +556,20 @@ def check_block_diagonal_information(
     fault = information_diagonal_fault(blocks[:, np.arange(p), np.arange(p)].reshape(-1), lim, describe)
     if fault is not None:
         raise InvalidMapError(f"{who}: {fault}")
+    check_block_diagonal_condition(blocks, who, lim)
+
+
+def check_block_diagonal_condition(blocks: FloatArray, who: str, limits: InputLimits | None = None) -> None:
+    """The condition-number part of :func:`check_block_diagonal_information` alone (blocks
+    whose diagonal is known within the bounds): ``max_b ||B_b||_1 max_b ||B_b^-1||_1`` at most
+    ``max_condition``.
+
+    Raises:
+        InvalidMapError: the condition number is above the bound, or a block is singular.
+    """
+    lim = limits_or_default(limits)
+    if blocks.shape[0] == 0:
+        return
     try:
         inverses = np.linalg.inv(blocks)
     except np.linalg.LinAlgError:

@@ -21,7 +21,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.errors import GraphError, InvalidMapError
 from linear_slam_ros.core.geometry import pose_size, wrap_angle
 from linear_slam_ros.core.limits import InputLimits
-from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, default_end_pose
+from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, check_block_diagonal_condition, default_end_pose
 from linear_slam_ros.core.solvers import DENSE_MAX
 from linear_slam_ros.pose_graph.graph import FloatArray, IntArray, PoseGraph
 from linear_slam_ros.pose_graph.lago import lago
@@ -61,8 +61,14 @@ def star_chunk_to_local_map(graph: PoseGraph, limits: InputLimits | None = None)
     # The structure holds by construction (distinct poses, none of them the frame, the end pose
     # one of them) and the blocks are symmetric positive definite (the graph checked each edge):
     # what is left are the bounds, checked from the blocks (the pose-graph decoder's hot path).
+    # With no edge fused, the estimate is the measurements and the blocks the edges' information:
+    # when the graph passed these limits, its checks were the map's bounds, all but the condition
+    # number of the whole matrix (a message through the node: 0.08 of its 0.46 ms of decoding).
     try:
-        local.check_numbers(limits, blocks=blocks)
+        if blocks is graph.information and graph.checked_with(limits):
+            check_block_diagonal_condition(blocks, f"local map {local.name!r}", limits)
+        else:
+            local.check_numbers(limits, blocks=blocks)
     except InvalidMapError as exc:
         raise GraphError(str(exc)) from None
     return local

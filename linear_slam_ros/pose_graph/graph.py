@@ -117,6 +117,12 @@ class PoseGraph:
         lim = limits_or_default(limits)
         self._check_measurements(lim)
         self._check_information(lim)
+        object.__setattr__(self, "_checked_with", lim)  # not a field: equality and copies ignore it
+
+    def checked_with(self, limits: InputLimits | None) -> bool:
+        """Whether this graph's numbers passed the checks of ``limits`` (default limits when None):
+        the measurements' and the information's bounds, at construction or by :meth:`validate`."""
+        return self.__dict__.get("_checked_with") == limits_or_default(limits)
 
     def _check_measurements(self, limits: InputLimits) -> None:
         """Raise :class:`GraphError` at the first measured translation beyond ``max_coordinate``

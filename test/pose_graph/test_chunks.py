@@ -10,7 +10,7 @@ import scipy.sparse as sp
 from linear_slam_ros.core.errors import GraphError, InvalidMapError
 from linear_slam_ros.core.geometry import relative_pose
 from linear_slam_ros.core.limits import InputLimits
-from linear_slam_ros.core.local_map import fuse_repeated
+from linear_slam_ros.core.local_map import LocalMap, fuse_repeated
 from linear_slam_ros.core.solvers import DENSE_MAX
 from linear_slam_ros.pose_graph.chunks import (
     block_diagonal,
@@ -55,6 +55,39 @@ def test_star_map_is_checked_as_a_whole_against_the_limits(make_chunk):
     match = "angle at state index 2 \\(pose 4\\) is 3.1\\d* rad, beyond the limit max_angle = 3.1 rad"
     with pytest.raises(GraphError, match=match):
         star_chunk_to_local_map(fused, InputLimits(max_angle=3.1))  # the fused angle, not a measured one, is beyond
+
+
+def test_a_graph_knows_the_limits_its_numbers_passed(make_chunk):
+    strict = InputLimits(max_angle=1.0)
+    chunk = make_chunk()  # the default limits
+    assert chunk.checked_with(None) and not chunk.checked_with(strict)
+    chunk.validate(strict)
+    assert chunk.checked_with(strict) and not chunk.checked_with(None)
+    with pytest.raises(GraphError, match="edge 0 \\(3->4\\): angle 0 is 0.1 rad, beyond the limit max_angle = 0.05 rad"):
+        chunk.validate(InputLimits(max_angle=0.05))
+    assert chunk.checked_with(strict)  # a failed check does not change what passed
+    assert make_chunk(limits=strict).checked_with(strict)  # from_edges' own limits
+
+
+def test_a_star_map_relies_on_its_graph_checks_only_under_the_same_limits(make_chunk, monkeypatch):
+    """With no edge fused and the graph checked with the same limits, only the whole matrix's
+    condition is checked again; otherwise the map's bounds are checked in full."""
+    full_checks: list[str] = []
+    original = LocalMap.check_numbers
+
+    def counted(self, limits=None, blocks=None):
+        full_checks.append(self.name)
+        return original(self, limits, blocks=blocks)
+
+    monkeypatch.setattr(LocalMap, "check_numbers", counted)
+    star_chunk_to_local_map(make_chunk())
+    star_chunk_to_local_map(make_chunk(limits=InputLimits(max_angle=1.0)), InputLimits(max_angle=1.0))
+    assert full_checks == []
+    with pytest.raises(GraphError, match="^local map 'pose-graph chunk 1': angle at state index 2 \\(pose 4\\) is 0.1 rad"):
+        star_chunk_to_local_map(make_chunk(), InputLimits(max_angle=0.05))  # checked with other limits
+    assert full_checks == ["pose-graph chunk 1"]
+    star_chunk_to_local_map(make_chunk(to_ids=np.array([4, 4])))  # fused: new values and blocks
+    assert len(full_checks) == 2
 
 
 def test_non_star_chunk_needs_lago(make_chunk):

@@ -117,7 +117,7 @@ class PoseGraph:
         lim = limits_or_default(limits)
         self._check_measurements(lim)
         self._check_information(lim)
-        object.__setattr__(self, "_checked_with", lim)  # not a field: equality and copies ignore it
+        object.__setattr__(self, "_checked_with", lim)  # not a field: equality ignores it
 
     def checked_with(self, limits: InputLimits | None) -> bool:
         """Whether this graph's numbers passed the checks of ``limits`` (default limits when None):

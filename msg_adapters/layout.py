@@ -49,8 +49,10 @@ coordinates) by the validation of the decoded map or graph, with the same limits
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -87,13 +89,54 @@ _CHUNK_HEADER = 7
 _MAX_EXACT = 2.0**53
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Encoded:
-    """A message's content: segment labels, sizes and the concatenated data."""
+    """A message's content: segment labels and one array per segment.
+
+    The message's ``data`` is the segments' concatenation as float64. Each part keeps the dtype
+    it was made with (a map's information triplets keep their int32 indices) until it is written
+    into a message, so a serialiser that writes the parts one by one
+    (:func:`msg_adapters.cdr.to_cdr`) never holds the concatenation beside the message.
+
+    Attributes:
+        labels: the segments' labels, in order.
+        parts: one 1-D array per segment, of a real dtype whose values float64 holds exactly.
+    """
 
     labels: tuple[str, ...]
-    sizes: tuple[int, ...]
-    data: FloatArray
+    parts: tuple[npt.NDArray[Any], ...]
+
+    def __post_init__(self) -> None:
+        if len(self.labels) != len(self.parts):
+            raise MessageError(f"Encoded: {len(self.labels)} labels for {len(self.parts)} parts")
+        bad = [k for k, part in zip(self.labels, self.parts, strict=True) if np.ndim(part) != 1]
+        if bad:
+            raise MessageError(f"Encoded: segment(s) {bad} are not 1-D arrays")
+
+    @classmethod
+    def of(cls, labels: Sequence[str], sizes: Sequence[int], data: npt.ArrayLike) -> Encoded:
+        """Return the content whose concatenated ``data`` is split into segments of ``sizes``.
+
+        Raises:
+            MessageError: the sizes do not add up to the data's length.
+        """
+        flat = np.asarray(data, dtype=np.float64).ravel()
+        if sum(sizes) != flat.size:
+            raise MessageError(f"Encoded: sizes {list(sizes)} add up to {sum(sizes)} values but data has {flat.size}")
+        ends = np.cumsum([0, *sizes])
+        return cls(tuple(labels), tuple(flat[a:b] for a, b in zip(ends[:-1], ends[1:], strict=True)))
+
+    @property
+    def sizes(self) -> tuple[int, ...]:
+        """Each segment's number of values."""
+        return tuple(int(part.size) for part in self.parts)
+
+    @functools.cached_property
+    def data(self) -> FloatArray:
+        """The message's ``data``: the segments concatenated, as float64 (made on first use)."""
+        if not self.parts:
+            return np.zeros(0)
+        return np.concatenate(self.parts, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -146,8 +189,21 @@ class ChunkMessage:
 
 
 def _encode(segments: Sequence[tuple[str, npt.ArrayLike]]) -> Encoded:
-    arrays = [np.ascontiguousarray(np.asarray(v, dtype=np.float64).ravel()) for _, v in segments]
-    return Encoded(tuple(k for k, _ in segments), tuple(int(a.size) for a in arrays), np.concatenate(arrays))
+    arrays = [np.ravel(np.asarray(v, dtype=np.float64) if not isinstance(v, np.ndarray) else v) for _, v in segments]
+    return Encoded(tuple(k for k, _ in segments), tuple(arrays))
+
+
+def upper_triplets(info: InfoMatrix) -> tuple[npt.NDArray[np.integer[Any]], npt.NDArray[np.integer[Any]], FloatArray]:
+    """Return the upper triangle (i <= j) of an information matrix as ``(rows, cols, vals)``.
+
+    The same entries, in the same (row-major) order, as ``scipy.sparse.triu(info, format="coo")``,
+    read from the CSR arrays without the full matrix's COO copy: a large map's triangle is made
+    in the output thread beside everything the node holds (README, "Peak memory").
+    """
+    csr = to_csr(info)
+    rows = np.repeat(np.arange(csr.shape[0], dtype=csr.indices.dtype), np.diff(csr.indptr))
+    upper = csr.indices >= rows
+    return rows[upper], csr.indices[upper], csr.data[upper]
 
 
 def encode_map(
@@ -191,16 +247,16 @@ def _encode_map_segments(
     extra: Sequence[tuple[str, npt.ArrayLike]] = (),
     extra_after: Sequence[tuple[str, npt.ArrayLike]] = (),
 ) -> Encoded:
-    upper = sp.triu(to_csr(info), format="coo")
+    rows, cols, vals = upper_triplets(info)
     segments: list[tuple[str, npt.ArrayLike]] = [
         ("header", header),
         ("var_ids", ids),
         ("var_kinds", kinds),
         *extra,
         ("state", x),
-        ("info_rows", upper.row),
-        ("info_cols", upper.col),
-        ("info_vals", upper.data),
+        ("info_rows", rows),
+        ("info_cols", cols),
+        ("info_vals", vals),
     ]
     if stats is not None:
         segments.append(("stats", [float(stats.get(k, 0.0)) for k in STATS_FIELDS]))

@@ -55,10 +55,12 @@ from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
 from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.pose_output import PoseTracker
 from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbound_qos, latched_qos
+from linear_slam_ros.ros.raw_publish import publish_serialized
 from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
+from msg_adapters.cdr import to_cdr
 from msg_adapters.global_map import encode_empty_global, encode_global
-from msg_adapters.ros import parts, to_msg
+from msg_adapters.ros import parts
 from msg_adapters.views import MapViews, empty_views, map_views, pose_with_covariance_msg, transform_msg
 
 NODE_NAME = "joiner"
@@ -733,13 +735,13 @@ class JoinerNode(Node):
         self._deferred_pose = None  # the map it holds goes before the new one is made (peak memory); a new one is set below
         if state.n_joined == 0:  # no map (yet, or since a reset): say so, so no earlier map stays latched
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
-            self.pub_global.publish(to_msg(empty))
+            publish_serialized(self.pub_global, to_cdr(empty))
             views = empty_views(config.map_frame, stamp)
         else:
             joined = global_result(state, config.output_frame)
             if joined is None:  # feature-only: no group defines a feature frame yet
                 return
-            self.pub_global.publish(to_msg(self._encode(joined, state, stats)))
+            publish_serialized(self.pub_global, to_cdr(self._encode(joined, state, stats)))
             self._record_map_freshness(state)
             if self.refiner is not None and isinstance(joined, LocalMap):  # the warm start of its new variables
                 self.refiner.linear(LinearEstimate.of_map(joined, state.n_joined))

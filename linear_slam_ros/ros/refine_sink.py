@@ -22,9 +22,10 @@ from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.refinement.online import RefinedMap
 from linear_slam_ros.ros.qos import latched_qos
+from linear_slam_ros.ros.raw_publish import publish_serialized
 from msg_adapters import Encoded, Stamp
+from msg_adapters.cdr import to_cdr
 from msg_adapters.global_map import encode_empty_global, encode_global
-from msg_adapters.ros import to_msg
 
 REFINE_FIELDS = ("chi2", "iterations", "converged", "lag_s", "cpu_s", "initial_chi2")
 """The ``refine`` segment of ``global_map_refined``, in order."""
@@ -38,7 +39,7 @@ class RosSink:
         self.node = rclpy.create_node(node_name)
         self.pub = self.node.create_publisher(Float64MultiArray, topic, latched_qos())
         self.output_frame = output_frame
-        self.pub.publish(to_msg(encode_empty_global(LocalMap, 0, Stamp(), {})))  # no older refined map stays latched
+        publish_serialized(self.pub, to_cdr(encode_empty_global(LocalMap, 0, Stamp(), {})))  # no older refined map stays latched
 
     def publish(self, refined: RefinedMap, cpu_seconds: float) -> None:
         """Encode and publish one refined map (module docstring)."""
@@ -48,7 +49,7 @@ class RosSink:
         encoded = encode_global(m, refined.last_seq, Stamp(*refined.stamp), refined.n_submaps, {"n_joined": refined.n_submaps})
         lag = time.monotonic() - refined.last_arrival
         values = [refined.chi2, refined.iterations, float(refined.converged), lag, cpu_seconds, refined.initial_chi2]
-        self.pub.publish(to_msg(with_refine_segment(encoded, values)))
+        publish_serialized(self.pub, to_cdr(with_refine_segment(encoded, values)))
 
     def close(self, cpu_seconds: float) -> None:
         """Destroy the node and end the child's rclpy context."""
@@ -58,7 +59,7 @@ class RosSink:
 
 def with_refine_segment(encoded: Encoded, values: list[float]) -> Encoded:
     """Append the ``refine`` segment (:data:`REFINE_FIELDS`) to an encoded map."""
-    return Encoded(encoded.labels + ("refine",), encoded.sizes + (len(values),), np.concatenate([encoded.data, values]))
+    return Encoded(encoded.labels + ("refine",), encoded.parts + (np.asarray(values, dtype=np.float64),))
 
 
 def make_sink(topic: str, node_name: str, output_frame: str) -> RosSink:

@@ -44,7 +44,7 @@ def _messages(seed: int, n: int, max_values: int = 40) -> list[tuple[str, bytes,
     out = []
     for i in range(n):
         k = int(rng.integers(0, max_values))
-        raw = serialize(Encoded(("header", "data"), (3, k), rng.standard_normal(3 + k)))
+        raw = serialize(Encoded.of(("header", "data"), (3, k), rng.standard_normal(3 + k)))
         topic = TOPICS[i] if i < 2 else TOPICS[int(rng.integers(0, 2))]  # both channels before record 2
         out.append((topic, raw, T0 + i * 100_000_000))
     return out
@@ -179,7 +179,7 @@ def test_restart_after_a_kill_seals_the_file_and_continues_the_indices(tmp_path:
 
 def test_a_cut_at_any_byte_drops_only_the_incomplete_record(tmp_path: Path) -> None:
     folder = tmp_path / "journal"
-    small = serialize(Encoded(("header",), (3,), np.arange(3.0)))  # a short last record: fewer cuts to read
+    small = serialize(Encoded.of(("header",), (3,), np.arange(3.0)))  # a short last record: fewer cuts to read
     messages = [*_messages(4, 5), ("pose_graph", small, T0 + 10**9)]
     _, ends = _write_session(folder, messages)
     whole = (folder / "journal_0.mcap").read_bytes()
@@ -277,7 +277,7 @@ def test_a_kill_during_any_byte_of_a_mapped_write_drops_only_that_record(tmp_pat
     """The storage file is written through a memory map: bytes 1-8 (the record's length), then its body, then
     its opcode byte. A kill at any instant leaves the bytes copied so far and zeros after them."""
     folder = tmp_path / "journal"
-    small = serialize(Encoded(("header",), (3,), np.arange(3.0)))
+    small = serialize(Encoded.of(("header",), (3,), np.arange(3.0)))
     messages = [*_messages(11, 4), ("pose_graph", small, T0 + 10**9)]
     journal, ends = _write_session(folder, messages, close=False)
     live = journal.path.read_bytes()

@@ -31,6 +31,8 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+import threading
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 from typing import Any
 
@@ -48,6 +50,15 @@ _INT, _LONG, _REAL, _DOUBLE, _SYS_A = 0, 2, 1, 0, 0  # CHOLMOD_INT, CHOLMOD_LONG
 INT32_MAX_INDEX = 2**31 - 1
 """Largest dimension or entry count CHOLMOD's ``int`` interface takes; beyond, the ``long`` one."""
 _COMMON_BYTES = 1 << 16  # sizeof(cholmod_common) is about 2-3 KB in CHOLMOD 3-5
+LARGE_ENTRIES = 1_000_000
+"""Stored entries from which :func:`solve_spd` factorises one such matrix at a time in the process.
+
+The node's background merges and its output thread (the stack's merge, the newest pose's exact
+covariance) each factorise maps of up to the whole map's size; two at once hold two factors and
+workspaces (the final map of garage3d-5000: 132 MB above the matrix for one). On a 2-core machine
+whose other core takes the arrivals they share one core anyway, so a large factorisation waits
+for the one under way instead of running beside it (README, "Peak memory"). Smaller ones never wait."""
+_LARGE = threading.Lock()
 
 
 class _Sparse(ctypes.Structure):
@@ -290,17 +301,23 @@ def solve_spd(matrix: sp.spmatrix | sp.sparray, rhs: FloatArray) -> FloatArray:
     api, n, indptr, indices, data = _native_csc(matrix)
     b = np.asfortranarray(rhs, dtype=np.float64)
     _check_rhs(b, n)
-    common = ctypes.create_string_buffer(_COMMON_BYTES)
-    analysis = _analyze(api, common, n, indptr, indices, data, b)
-    api, factor = analysis.api, analysis.factor
-    try:
-        api.factorize(ctypes.byref(analysis.a_struct), factor, common)
-        if not _positive_definite(factor.contents):
-            raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
-        return _solve(api, factor, analysis.b_struct, b, common)
-    finally:
-        api.free_factor(ctypes.byref(factor), common)
-        api.finish(common)
+    with one_large_at_a_time(indices.size):
+        common = ctypes.create_string_buffer(_COMMON_BYTES)
+        analysis = _analyze(api, common, n, indptr, indices, data, b)
+        api, factor = analysis.api, analysis.factor
+        try:
+            api.factorize(ctypes.byref(analysis.a_struct), factor, common)
+            if not _positive_definite(factor.contents):
+                raise SolverError(f"information matrix of size {n} is not positive definite (CHOLMOD)")
+            return _solve(api, factor, analysis.b_struct, b, common)
+        finally:
+            api.free_factor(ctypes.byref(factor), common)
+            api.finish(common)
+
+
+def one_large_at_a_time(entries: int) -> AbstractContextManager[Any]:
+    """Return the process's lock for a factorisation of ``entries`` stored entries from :data:`LARGE_ENTRIES` on, else a no-op."""
+    return _LARGE if entries >= LARGE_ENTRIES else nullcontext()
 
 
 class Factor:

@@ -128,4 +128,3 @@ def publish_serialized(publisher: Any, buffer: npt.NDArray[np.uint8]) -> None:
         reason = error_string().str.decode(errors="replace")
         reset_error()
         raise PublishError(f"rcl_publish_serialized_message on {publisher.topic_name} returned {ret}: {reason}")
-

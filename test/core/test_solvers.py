@@ -73,6 +73,29 @@ def test_libcholmod_equals_scikit_sparse_bit_for_bit_and_lets_other_threads_run(
     assert seconds > 0.02 and len(during) >= seconds / 0.0005 / 10  # the other thread ran all along
 
 
+def test_large_factorisations_take_turns_and_small_ones_never_wait(rng, monkeypatch):
+    """Two factorisations from ``LARGE_ENTRIES`` stored entries on never run at once (peak memory)."""
+    import threading
+
+    from linear_slam_ros.core import cholmod
+
+    monkeypatch.setattr(cholmod, "LARGE_ENTRIES", 1000)
+    large, small = _spd(400, rng), _spd(10, rng)
+    assert large.nnz >= 1000 > small.nnz
+    done = threading.Event()
+    result: list[np.ndarray] = []
+    worker = threading.Thread(target=lambda: (result.append(cholmod.solve_spd(large, np.ones(400))), done.set()))
+    with cholmod.one_large_at_a_time(large.nnz):  # a large factorisation under way
+        worker.start()
+        assert not done.wait(0.3)  # the other large one waits for it
+        np.testing.assert_allclose(small @ cholmod.solve_spd(small, np.ones(10)), np.ones(10), atol=1e-9)  # a small one does not
+    assert done.wait(30.0)
+    worker.join()
+    np.testing.assert_allclose(large @ result[0], np.ones(400), atol=1e-9)
+    with cholmod.one_large_at_a_time(small.nnz), cholmod.one_large_at_a_time(small.nnz):  # no lock below the bound
+        pass
+
+
 def test_reused_analysis_solves_as_a_fresh_one_and_analyses_once_per_pattern(rng):
     from linear_slam_ros.core.cholmod import ReusedAnalysis, solve_spd
 

@@ -57,7 +57,8 @@ The node's background merges and its output thread (the stack's merge, the newes
 covariance) each factorise maps of up to the whole map's size; two at once hold two factors and
 workspaces (the final map of garage3d-5000: 132 MB above the matrix for one). On a 2-core machine
 whose other core takes the arrivals they share one core anyway, so a large factorisation waits
-for the one under way instead of running beside it (README, "Peak memory"). Smaller ones never wait."""
+for the one under way instead of running beside it (README, "The global map sent as serialised
+bytes; one large factorisation at a time"). Smaller ones never wait."""
 _LARGE = threading.Lock()
 
 

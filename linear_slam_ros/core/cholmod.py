@@ -58,7 +58,9 @@ covariance) each factorise maps of up to the whole map's size; two at once hold 
 workspaces (the final map of garage3d-5000: 132 MB above the matrix for one). On a 2-core machine
 whose other core takes the arrivals they share one core anyway, so a large factorisation waits
 for the one under way instead of running beside it (README, "The global map sent as serialised
-bytes; one large factorisation at a time"). Smaller ones never wait."""
+bytes; one large factorisation at a time"). Smaller ones never wait, and neither do :class:`Factor`
+(the gate's, on the arrival path, which must not wait for a merge) nor :class:`ReusedAnalysis` (the
+refiner's, in a process of its own)."""
 _LARGE = threading.Lock()
 
 

@@ -137,15 +137,29 @@ class FrameJacobian(NamedTuple):
 
     def csr(self, n: int, transpose: bool = False) -> sp.csr_matrix:
         """Return the ``(n, n)`` Jacobian (or its transpose) as CSR."""
+        return self._csr(n, transpose, with_slot=True)
+
+    def block_diagonal(self, n: int, transpose: bool = False) -> sp.csr_matrix:
+        """Return the Jacobian without the slot's columns (its block-diagonal part ``D``), or ``D^T``, as CSR.
+
+        ``D`` has no entry in the slot's rows or columns: the Jacobian is ``D`` plus
+        :meth:`column` in the slot's columns.
+        """
+        return self._csr(n, transpose, with_slot=False)
+
+    def _csr(self, n: int, transpose: bool, with_slot: bool) -> sp.csr_matrix:
         pos_idx, ang_idx, frame_cols = self.layout
         k, d = pos_idx.shape
         parts = [
             (pos_idx[:, :, None], pos_idx[:, None, :], np.broadcast_to(self.rot, (k, d, d))),
-            (pos_idx[:, :, None], frame_cols[None, None, :], self.pos_frame),
             (ang_idx[:, :, None], ang_idx[:, None, :], self.ang_self),
-            (ang_idx[:, :, None], frame_cols[None, None, :], self.ang_frame),
-            (frame_cols[None, :, None], frame_cols[None, None, :], self.slot[None]),
         ]
+        if with_slot:
+            parts += [
+                (pos_idx[:, :, None], frame_cols[None, None, :], self.pos_frame),
+                (ang_idx[:, :, None], frame_cols[None, None, :], self.ang_frame),
+                (frame_cols[None, :, None], frame_cols[None, None, :], self.slot[None]),
+            ]
         rows = np.concatenate([np.broadcast_to(r, v.shape).ravel() for r, _, v in parts])
         cols = np.concatenate([np.broadcast_to(c, v.shape).ravel() for _, c, v in parts])
         vals = np.concatenate([v.ravel() for _, _, v in parts])
@@ -229,15 +243,56 @@ def transform_information(info: InfoMatrix, back: FrameJacobian) -> InfoMatrix:
         out += out.T
         out *= 0.5
         return out
-    g_t = back.csr(n, transpose=True)
+    # G = D + C S, with D block diagonal (no entry in the slot's rows or columns), C the slot's
+    # dense column block and S the selection of the slot's columns:
+    #   G^T I G = D^T I D + (D^T I C) S + S^T (C^T I D) + S^T (C^T I C) S.
+    # D^T I D keeps the pattern of I (two products with at most three entries a row); the rest
+    # is the slot's rows and columns, from the dense (n, p) block I C. Half the work of the
+    # products with G, whose dense column block every row of G holds.
+    d_t = back.block_diagonal(n, transpose=True)
+    moved = d_t @ info @ d_t.T.tocsr()
+    moved.sort_indices()  # the products leave each row's indices unsorted
     # G^T I G is symmetric up to round-off (1e-16 relative); the solvers read one triangle and
-    # the message encoder the upper one, so it is not symmetrised. The product's indices are
-    # unsorted; its transpose (one pass, sorted by construction) is taken instead of a sort:
-    # the CSC arrays of M read as CSR are M^T, which is G^T I^T G, equal up to that round-off.
-    product = (g_t @ info @ g_t.T).tocsc()
-    moved = sp.csr_matrix((product.data, product.indices, product.indptr), shape=(n, n))
-    moved.has_sorted_indices = True
-    return moved
+    # the message encoder the upper one, so it is not symmetrised. The sum of two CSR matrices
+    # with sorted indices is sorted, without duplicates: the form the joins assemble from.
+    out: sp.csr_matrix = (moved + _slot_lines(info, back, d_t)).tocsr()
+    return out
+
+
+def _slot_lines(info: sp.csr_matrix, back: FrameJacobian, d_t: sp.csr_matrix) -> sp.csr_matrix:
+    """Return the slot's rows and columns of ``G^T I G`` (every other entry absent) as CSR with sorted indices.
+
+    Args:
+        info: ``(n, n)`` sparse information in the old frame.
+        back: the reverse-change Jacobian ``G``.
+        d_t: ``back.block_diagonal(n, transpose=True)``.
+    """
+    n = info.shape[0]
+    frame_cols = back.layout.frame_cols
+    p = frame_cols.size
+    column = back.column(n)  # C
+    info_column = np.asarray(info @ column)  # I C, (n, p)
+    lines = np.asarray(d_t @ info_column)  # D^T I C: the slot's columns, zero in its rows
+    lines[frame_cols] = column.T @ info_column  # C^T I C
+    counts = np.full(n, p, dtype=np.int64)
+    counts[frame_cols] = n
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    index_dtype = np.int32 if indptr[-1] <= np.iinfo(np.int32).max else np.int64
+    indices = np.empty(indptr[-1], dtype=index_dtype)
+    data = np.empty(indptr[-1])
+    others = np.ones(n, dtype=bool)
+    others[frame_cols] = False
+    at = indptr[:-1][others][:, None] + np.arange(p)  # the slot's columns of every other row
+    indices[at] = frame_cols
+    data[at] = lines[others]
+    everything = np.arange(n, dtype=index_dtype)
+    for j, row in enumerate(frame_cols):  # the slot's rows: the transpose of its columns
+        indices[indptr[row] : indptr[row + 1]] = everything
+        data[indptr[row] : indptr[row + 1]] = lines[:, j]
+    out = sp.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=(n, n))
+    out.has_sorted_indices = True
+    return out
 
 
 def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:

@@ -53,15 +53,39 @@ def test_forward_and_reverse_jacobians_are_inverse(dim, rng):
     np.testing.assert_allclose(g @ h, np.eye(m.state_dim), atol=1e-10)
 
 
-def test_information_transport_dense_and_sparse_agree(rng):
-    m = _map(2, rng, poses_per_map=6)
-    layout = frame_layout(2, m.kinds, 0)
-    back = reframe_jacobian(2, reframe(2, m.x, layout), layout)
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("slot", [0, 3])
+def test_information_transport_dense_and_sparse_agree(dim, slot, rng):
+    m = _map(dim, rng, poses_per_map=6)
+    layout = frame_layout(dim, m.kinds, slot)
+    back = reframe_jacobian(dim, reframe(dim, m.x, layout), layout)
     dense = transform_information(m.info_dense(), back)
-    sparse = transform_information(sp.csr_matrix(m.info_dense()), back)
+    info = sp.csr_matrix(m.info_dense())
+    sparse = transform_information(info, back)
     np.testing.assert_allclose(sparse.toarray(), dense, rtol=1e-12, atol=1e-9)
     g = back.dense(m.state_dim)
     np.testing.assert_allclose(dense, g.T @ m.info_dense() @ g, rtol=1e-12, atol=1e-9)
+    # the sparse result is canonical CSR (sorted, no duplicates): the form the joins assemble from
+    assert isinstance(sparse, sp.csr_matrix) and sparse.has_canonical_format
+    canonical = sparse.copy()
+    canonical.sum_duplicates()
+    np.testing.assert_array_equal(canonical.indices, sparse.indices)
+    # the Jacobian is its block-diagonal part plus the slot's dense columns
+    split = back.block_diagonal(m.state_dim).toarray()
+    split[:, layout.frame_cols] += back.column(m.state_dim)
+    np.testing.assert_array_equal(split, g)
+    transposed = back.block_diagonal(m.state_dim, transpose=True).toarray()
+    np.testing.assert_array_equal(transposed, back.block_diagonal(m.state_dim).toarray().T)
+
+
+def test_sparse_transport_of_a_map_moved_before(rng):
+    """A map whose information already holds dense rows (an earlier slot) moves again exactly."""
+    m = _map(3, rng, poses_per_map=6)
+    moved = change_frame(m, int(m.pose_ids[2]))
+    sparse = change_frame(moved.replace(info=sp.csr_matrix(moved.info_dense())), int(m.pose_ids[4]))
+    dense = change_frame(moved.replace(info=moved.info_dense()), int(m.pose_ids[4]))
+    np.testing.assert_allclose(sparse.info_dense(), dense.info_dense(), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(sparse.x, dense.x, atol=1e-12)
 
 
 def test_same_frame_is_identity(rng):

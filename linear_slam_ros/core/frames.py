@@ -255,8 +255,8 @@ def transform_information(info: InfoMatrix, back: FrameJacobian) -> InfoMatrix:
     # G^T I G is symmetric up to round-off (1e-16 relative); the solvers read one triangle and
     # the message encoder the upper one, so it is not symmetrised. The sum of two CSR matrices
     # with sorted indices is sorted, without duplicates: the form the joins assemble from.
-    out: sp.csr_matrix = (moved + _slot_lines(info, back, d_t)).tocsr()
-    return out
+    total: sp.csr_matrix = (moved + _slot_lines(info, back, d_t)).tocsr()
+    return total
 
 
 def _slot_lines(info: sp.csr_matrix, back: FrameJacobian, d_t: sp.csr_matrix) -> sp.csr_matrix:

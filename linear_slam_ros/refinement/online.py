@@ -63,6 +63,10 @@ class RefinerConfig:
             the submaps absorbed so far (> 0; 0.25: rounds at 1, 1.25, 1.56, ... times the data).
         idle_s: absorb queued submaps once none has arrived for this long, s (the end of a stream).
         chi2_rtol: a round has converged when a step lowers χ² by at most this fraction.
+        streaming_rtol: while submaps still arrive (the stream is not idle), a round also ends
+            once a step lowers χ² by at most this fraction (when above ``chi2_rtol``): its
+            remaining steps would be redone over more data at the next round. Once the stream is
+            idle, a round ended so resumes until ``chi2_rtol`` (:meth:`OnlineRefiner.resume`).
         step_tol: ... or when its largest component is below this (m, rad).
         publish_period: least time between two publications of a round that has not converged
             (the worker also publishes, once the stream is idle, each step that is near the optimum).
@@ -75,6 +79,7 @@ class RefinerConfig:
     growth: float = 0.25
     idle_s: float = 0.05
     chi2_rtol: float = 1e-7
+    streaming_rtol: float = 1e-2
     step_tol: float = 1e-10
     publish_period: float = 1.0
     max_round_iterations: int = 50
@@ -85,6 +90,7 @@ class RefinerConfig:
             ("growth", self.growth > 0 and math.isfinite(self.growth)),
             ("idle_s", self.idle_s >= 0 and math.isfinite(self.idle_s)),
             ("chi2_rtol", 0 <= self.chi2_rtol < 1),
+            ("streaming_rtol", 0 <= self.streaming_rtol < 1),
             ("step_tol", self.step_tol >= 0),
             ("publish_period", self.publish_period >= 0),
             ("max_round_iterations", self.max_round_iterations >= 1),
@@ -150,7 +156,8 @@ class RefinedMap:
         chi2: eq. (7) summed over the ``n_submaps`` submaps, at the estimate.
         n_submaps: submaps it covers; ``last_seq``, ``stamp``, ``last_arrival`` (monotonic s): of the newest.
         iterations: Gauss-Newton steps taken since the refiner started.
-        converged: whether the round on these submaps has converged.
+        converged: whether the round on these submaps has converged to ``chi2_rtol`` (not a round
+            ended at ``streaming_rtol`` while submaps still arrived).
         initial_chi2: χ² of the warm start of this round (after the last absorb).
     """
 
@@ -188,7 +195,7 @@ class OnlineRefiner:
     """Gauss-Newton over every submap absorbed so far, warm-started across rounds (module docstring).
 
     Not thread-safe: one owner calls it. Attributes of interest: :attr:`n_absorbed`,
-    :attr:`n_pending`, :attr:`iterations`, :attr:`converged`, :attr:`chi2`.
+    :attr:`n_pending`, :attr:`iterations`, :attr:`converged`, :attr:`settled`, :attr:`chi2`.
     """
 
     def __init__(self, config: RefinerConfig | None = None, clock: Callable[[], float] = time.monotonic) -> None:
@@ -202,7 +209,8 @@ class OnlineRefiner:
         self.n_skipped = 0
         self.iterations = 0
         self.round_iterations = 0
-        self.converged = True  # nothing to do yet
+        self.converged = True  # the round has ended (nothing to do yet)
+        self.settled = True  # ... and at ``chi2_rtol``, not ``streaming_rtol``
         self.chi2 = 0.0
         self.initial_chi2 = 0.0
         self.last_relative_decrease = math.inf  # of χ² by the last step, as a fraction of χ² after it
@@ -260,6 +268,24 @@ class OnlineRefiner:
         """Whether nothing is queued and no submap has arrived for ``idle_s`` s (the end of a stream, a pause)."""
         return not self._pending and self._clock() - self._last_received >= self.config.idle_s
 
+    def seconds_until_idle(self) -> float:
+        """Seconds until the stream is idle if nothing more arrives (0: it is; inf: submaps are queued)."""
+        if self._pending:
+            return math.inf
+        return max(0.0, self.config.idle_s - (self._clock() - self._last_received))
+
+    def resume(self) -> bool:
+        """Resume a round that ended at ``streaming_rtol`` once the stream is idle.
+
+        Returns:
+            Whether the round resumed (it runs on until ``chi2_rtol``).
+        """
+        if not self.converged or self.settled or not self.stream_idle():
+            return False
+        self.converged = False
+        self.round_iterations = 0
+        return True
+
     def seconds_until_due(self) -> float | None:
         """Seconds until queued submaps become due by ``idle_s`` (``None``: nothing queued)."""
         if not self._pending:
@@ -313,7 +339,7 @@ class OnlineRefiner:
         self.n_absorbed += taken
         self._build_objective()
         self.round_iterations = 0
-        self.converged = False
+        self.converged = self.settled = False
         self.last_relative_decrease = math.inf
         return taken
 
@@ -463,7 +489,9 @@ class OnlineRefiner:
         """Take one Gauss-Newton step on the absorbed submaps.
 
         Returns:
-            Whether the round has converged (no step is taken once it has). A singular system
+            Whether the round has ended (no step is taken once it has): converged to
+            ``chi2_rtol`` (:attr:`settled`), or, while the stream is not idle, to
+            ``streaming_rtol``. A singular system
             ends the round with a warning (the estimate stays as it was).
         """
         if self.converged or self._objective is None or self._jac is None:
@@ -475,21 +503,24 @@ class OnlineRefiner:
             )
         except LinearSlamError as exc:
             logger.warning("refiner: Gauss-Newton step failed on %d submaps: %s", self.n_absorbed, exc)
-            self.converged = True
+            self.converged = self.settled = True
             return True
         self.round_iterations += 1
         if step is None:
-            self.converged = True
+            self.converged = self.settled = True
             return True
         self.iterations += 1
         decrease = self.chi2 - step.chi2
         self._x, self._r, self._jac, self.chi2 = step.x, step.r, step.jacobian, step.chi2
         self.last_relative_decrease = decrease / max(self.chi2, 1e-300)
         cfg = self.config
-        self.converged = (
-            step.max_step < cfg.step_tol or decrease <= cfg.chi2_rtol * max(self.chi2, 1e-300)
+        scale = max(self.chi2, 1e-300)
+        self.settled = (
+            step.max_step < cfg.step_tol or decrease <= cfg.chi2_rtol * scale
             or self.round_iterations >= cfg.max_round_iterations
         )
+        streaming = cfg.streaming_rtol > cfg.chi2_rtol and not self.stream_idle()
+        self.converged = self.settled or (streaming and decrease <= cfg.streaming_rtol * scale)
         return self.converged
 
     def result(self, information: bool = True) -> RefinedMap:
@@ -516,7 +547,7 @@ class OnlineRefiner:
         )
         last = self._last
         return RefinedMap(
-            refined, self.chi2, self.n_submaps, last.seq, last.stamp, last.arrived, self.iterations, self.converged,
+            refined, self.chi2, self.n_submaps, last.seq, last.stamp, last.arrived, self.iterations, self.settled,
             self.initial_chi2,
         )
 
@@ -539,7 +570,8 @@ def refine_offline(
     if not maps:
         raise InvalidMapError("no submaps to refine")
     cfg = config or RefinerConfig()
-    refiner = OnlineRefiner(RefinerConfig(**{**cfg.__dict__, "max_round_iterations": max_iterations}))
+    # the whole stream at once: no round ends at streaming_rtol
+    refiner = OnlineRefiner(RefinerConfig(**{**cfg.__dict__, "max_round_iterations": max_iterations, "streaming_rtol": 0.0}))
     if linear is not None:
         refiner.linear(LinearEstimate.of_map(linear, len(maps)))
     for seq, m in enumerate(maps, start=1):

@@ -140,8 +140,8 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
 
 
 def _linear_map(joiner: Joiner) -> LocalMap:
-    """The joiner's global map in the first pose's frame (what the node's publisher computes)."""
-    result = global_result(joiner.state, OutputFrame.FIRST_POSE)
+    """The joiner's global map as the node's publisher computes it by default (``output_frame`` ``end_pose``)."""
+    result = global_result(joiner.state, OutputFrame.END_POSE)
     assert isinstance(result, LocalMap)
     return result
 
@@ -311,6 +311,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-reuse-analysis", action="store_true", help="refiner: analyse every step's system afresh")
     ap.add_argument("--idle-s", type=float, default=RefinerConfig.idle_s,
                     help="refiner: take queued submaps in once none has arrived for this long, s")
+    ap.add_argument("--streaming-rtol", type=float, default=RefinerConfig.streaming_rtol,
+                    help="refiner: while submaps arrive, a round ends once a step lowers χ² by at most this fraction "
+                    "(0: only at chi2_rtol)")
     ap.add_argument("--no-isam2", action="store_true", help="ours only (the levers' comparisons)")
     args = ap.parse_args(argv)
     entries = []
@@ -319,7 +322,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not name.startswith("synthetic:") and not Path(source).exists():
             print(f"{source} missing: {name} skipped", file=sys.stderr)
             continue
-        config = RefinerConfig(growth=args.growth, idle_s=args.idle_s, reuse_analysis=not args.no_reuse_analysis)
+        config = RefinerConfig(
+            growth=args.growth, idle_s=args.idle_s, streaming_rtol=args.streaming_rtol,
+            reuse_analysis=not args.no_reuse_analysis,
+        )
         entries.append(race_stream(name, source, config, isam2=not args.no_isam2))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "race.json").write_text(json.dumps({"targets": TARGETS, "streams": entries}, indent=2, default=str) + "\n")

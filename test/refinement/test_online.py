@@ -80,9 +80,45 @@ def test_refine_offline_from_linear_and_from_chaining_agree(city: tuple[LocalMap
     assert from_linear.map.info.shape == (from_linear.map.state_dim,) * 2
 
 
+def _round_on(city: tuple[LocalMap, ...], config: RefinerConfig, clock: FakeClock) -> OnlineRefiner:
+    """A refiner that has absorbed ``city`` from its chained warm start, the last submap just arrived."""
+    refiner = OnlineRefiner(config, clock)
+    for seq, m in enumerate(city, start=1):
+        refiner.submit(Submission(seq, m, clock.t))
+    refiner.absorb()
+    return refiner
+
+
+def test_a_round_ends_early_while_submaps_arrive_and_resumes_once_idle(city: tuple[LocalMap, ...]) -> None:
+    """While the stream is not idle a round ends at streaming_rtol (not settled, reported not converged);
+    once idle it resumes to chi2_rtol and reaches the same χ² as a round that never stopped."""
+    maps = city[:150]
+    clock = FakeClock()
+    tight = _round_on(maps, RefinerConfig(idle_s=0.05, streaming_rtol=0.0), clock)
+    while not tight.iterate():
+        pass
+    early = _round_on(maps, RefinerConfig(idle_s=0.05, streaming_rtol=1e-2), clock)
+    while not early.iterate():  # the clock stands still: the stream is not idle
+        pass
+    assert early.converged and not early.settled and not early.result().converged
+    assert early.iterations < tight.iterations
+    assert early.last_relative_decrease <= 1e-2
+    assert not early.resume()  # not idle yet
+    assert early.seconds_until_idle() == pytest.approx(0.05)
+    clock.t += 0.05
+    assert early.seconds_until_idle() == 0.0 and early.resume() and not early.converged
+    while not early.iterate():
+        pass
+    assert early.settled and early.result().converged and not early.resume()
+    assert abs(early.chi2 - tight.chi2) <= 1e-8 * tight.chi2
+    assert tight.settled and tight.result().converged
+
+
 def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
     with pytest.raises(ConfigError, match="refiner growth=0"):
         RefinerConfig(growth=0)
+    with pytest.raises(ConfigError, match="refiner streaming_rtol=1.0"):
+        RefinerConfig(streaming_rtol=1.0)
     with pytest.raises(ConfigError, match="refiner max_round_iterations=0"):
         RefinerConfig(max_round_iterations=0)
     with pytest.raises(InvalidMapError, match="holds no submap yet"):

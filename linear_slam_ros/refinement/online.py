@@ -63,10 +63,13 @@ class RefinerConfig:
             the submaps absorbed so far (> 0; 0.25: rounds at 1, 1.25, 1.56, ... times the data).
         idle_s: absorb queued submaps once none has arrived for this long, s (the end of a stream).
         chi2_rtol: a round has converged when a step lowers χ² by at most this fraction.
-        streaming_rtol: while submaps still arrive (the stream is not idle), a round also ends
-            once a step lowers χ² by at most this fraction (when above ``chi2_rtol``): its
-            remaining steps would be redone over more data at the next round. Once the stream is
-            idle, a round ended so resumes until ``chi2_rtol`` (:meth:`OnlineRefiner.resume`).
+        streaming_rtol: while submaps still arrive, a round also ends once a step lowers χ² by
+            at most this fraction (when above ``chi2_rtol``): its remaining steps would be redone
+            over more data at the next round. Once none has arrived for ``settle_s``, a round
+            ended so resumes until ``chi2_rtol`` (:meth:`OnlineRefiner.resume`).
+        settle_s: how long without a new submap before rounds run to ``chi2_rtol``, s (at least
+            ``idle_s``; longer, so that the short pauses of a stream, an output computed by the
+            sender for instance, do not make every round run to the end).
         step_tol: ... or when its largest component is below this (m, rad).
         publish_period: least time between two publications of a round that has not converged
             (the worker also publishes, once the stream is idle, each step that is near the optimum).
@@ -80,6 +83,7 @@ class RefinerConfig:
     idle_s: float = 0.05
     chi2_rtol: float = 1e-7
     streaming_rtol: float = 1e-2
+    settle_s: float = 0.5
     step_tol: float = 1e-10
     publish_period: float = 1.0
     max_round_iterations: int = 50
@@ -91,6 +95,7 @@ class RefinerConfig:
             ("idle_s", self.idle_s >= 0 and math.isfinite(self.idle_s)),
             ("chi2_rtol", 0 <= self.chi2_rtol < 1),
             ("streaming_rtol", 0 <= self.streaming_rtol < 1),
+            ("settle_s", self.settle_s >= 0 and math.isfinite(self.settle_s)),
             ("step_tol", self.step_tol >= 0),
             ("publish_period", self.publish_period >= 0),
             ("max_round_iterations", self.max_round_iterations >= 1),
@@ -268,19 +273,23 @@ class OnlineRefiner:
         """Whether nothing is queued and no submap has arrived for ``idle_s`` s (the end of a stream, a pause)."""
         return not self._pending and self._clock() - self._last_received >= self.config.idle_s
 
-    def seconds_until_idle(self) -> float:
-        """Seconds until the stream is idle if nothing more arrives (0: it is; inf: submaps are queued)."""
+    def stream_settled(self) -> bool:
+        """Whether nothing is queued and no submap has arrived for ``settle_s`` s (nor ``idle_s``)."""
+        return not self._pending and self._clock() - self._last_received >= max(self.config.idle_s, self.config.settle_s)
+
+    def seconds_until_settled(self) -> float:
+        """Seconds until :meth:`stream_settled` if nothing more arrives (0: it is; inf: submaps are queued)."""
         if self._pending:
             return math.inf
-        return max(0.0, self.config.idle_s - (self._clock() - self._last_received))
+        return max(0.0, max(self.config.idle_s, self.config.settle_s) - (self._clock() - self._last_received))
 
     def resume(self) -> bool:
-        """Resume a round that ended at ``streaming_rtol`` once the stream is idle.
+        """Resume a round that ended at ``streaming_rtol``, once no submap has arrived for ``settle_s``.
 
         Returns:
             Whether the round resumed (it runs on until ``chi2_rtol``).
         """
-        if not self.converged or self.settled or not self.stream_idle():
+        if not self.converged or self.settled or not self.stream_settled():
             return False
         self.converged = False
         self.round_iterations = 0
@@ -490,8 +499,8 @@ class OnlineRefiner:
 
         Returns:
             Whether the round has ended (no step is taken once it has): converged to
-            ``chi2_rtol`` (:attr:`settled`), or, while the stream is not idle, to
-            ``streaming_rtol``. A singular system
+            ``chi2_rtol`` (:attr:`settled`), or, while submaps arrive (:meth:`stream_settled`
+            is false), to ``streaming_rtol``. A singular system
             ends the round with a warning (the estimate stays as it was).
         """
         if self.converged or self._objective is None or self._jac is None:
@@ -519,7 +528,7 @@ class OnlineRefiner:
             step.max_step < cfg.step_tol or decrease <= cfg.chi2_rtol * scale
             or self.round_iterations >= cfg.max_round_iterations
         )
-        streaming = cfg.streaming_rtol > cfg.chi2_rtol and not self.stream_idle()
+        streaming = cfg.streaming_rtol > cfg.chi2_rtol and not self.stream_settled()
         self.converged = self.settled or (streaming and decrease <= cfg.streaming_rtol * scale)
         return self.converged
 

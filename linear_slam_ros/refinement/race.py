@@ -8,9 +8,10 @@ Per stream, one submap at a time, in one process each:
 
 - **ours**: online divide and conquer (:class:`~linear_slam_ros.joiner.joiner.Joiner`, merges
   inline) times each submap's join; every joined submap goes to a
-  :class:`~linear_slam_ros.refinement.worker.RefineWorker` process; as the node's publisher
-  does, the linear global map is computed at most every 0.5 s and at most half of the time
-  (its estimate goes to the refiner), and once after the last submap. CPU: this process's
+  :class:`~linear_slam_ros.refinement.worker.RefineWorker` process; as the node's output
+  thread does, a thread of its own computes the linear global map (``end_pose`` frame, the
+  node's default) at most every 0.5 s and at most half of the time while the joins go on (its
+  estimate goes to the refiner), and once after the last submap. CPU: this process's
   (joining, linear outputs, sending) plus the refiner process's.
 - **iSAM2** (gtsam, default ``ISAM2Params``): one ``update`` per submap with that submap's
   factors. Conversion: each local map's pose block ``i`` (its estimate of pose ``i`` in the frame
@@ -38,6 +39,7 @@ import math
 import os
 import queue
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -74,29 +76,26 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
         raise RuntimeError("the refiner process did not start within 120 s")
     joiner = Joiner(JoinMethod.ONLINE_DC)
     steps: list[float] = []
-    output_seconds = 0.0
-    next_output = 0.0
+    outputs = _Outputs(joiner, worker)
     c0 = time.process_time()
     last_arrival = 0.0
-    for seq, m in enumerate(maps, start=1):
-        arrived = time.monotonic()
-        t0 = time.perf_counter()
-        joined = joiner.offer(m, seq)
-        steps.append(time.perf_counter() - t0)
-        if joined:
-            worker.submit(Submission(seq, m, arrived))
-        last_arrival = arrived
-        now = time.perf_counter()
-        if now >= next_output and seq < len(maps):
-            result = _linear_map(joiner)
-            worker.linear(LinearEstimate.of_map(result, joiner.state.n_joined))
-            cost = time.perf_counter() - now
-            output_seconds += cost
-            next_output = time.perf_counter() + max(OUTPUT_PERIOD_S, cost / OUTPUT_DUTY - cost)
+    outputs.start()
+    try:
+        for seq, m in enumerate(maps, start=1):
+            arrived = time.monotonic()
+            t0 = time.perf_counter()
+            joined = joiner.offer(m, seq)
+            steps.append(time.perf_counter() - t0)
+            if joined:
+                worker.submit(Submission(seq, m, arrived))
+            last_arrival = arrived
+    finally:
+        outputs.stop()
     t_join_end = time.perf_counter()
     linear_map = _linear_map(joiner)
     worker.linear(LinearEstimate.of_map(linear_map, joiner.state.n_joined))
     final_linear_seconds = time.perf_counter() - t_join_end
+    output_seconds = outputs.seconds
     cpu_parent = time.process_time() - c0
     publications: list[Published] = []
     deadline = time.monotonic() + timeout_s
@@ -137,6 +136,41 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
         "refined_map": final[-1].refined.map if final and final[-1].refined is not None else None,
         "worker_exitcodes": worker.exitcodes,
     }
+
+
+class _Outputs(threading.Thread):
+    """The linear global map computed on a thread of its own while submaps are joined, as the node's output thread does.
+
+    At most every :data:`OUTPUT_PERIOD_S` and at most :data:`OUTPUT_DUTY` of the time, from the
+    joiner's state as it is then (a value: the joins go on meanwhile); its estimate goes to the
+    refiner. Nothing is computed before the first submap is joined.
+    """
+
+    def __init__(self, joiner: Joiner, worker: RefineWorker) -> None:
+        super().__init__(name="race-outputs", daemon=True)
+        self._joiner = joiner
+        self._worker = worker
+        self._done = threading.Event()
+        self.seconds = 0.0
+
+    def run(self) -> None:
+        while not self._done.wait(OUTPUT_PERIOD_S if self.seconds else 0.01):
+            state = self._joiner.state
+            if state.n_joined == 0:
+                continue
+            t0 = time.perf_counter()
+            result = global_result(state, OutputFrame.END_POSE)
+            assert isinstance(result, LocalMap)
+            self._worker.linear(LinearEstimate.of_map(result, state.n_joined))
+            cost = time.perf_counter() - t0
+            self.seconds += cost
+            if self._done.wait(max(0.0, cost / OUTPUT_DUTY - cost - OUTPUT_PERIOD_S)):
+                return
+
+    def stop(self) -> None:
+        """End the loop (after the output under way) and wait for it."""
+        self._done.set()
+        self.join()
 
 
 def _linear_map(joiner: Joiner) -> LocalMap:
@@ -314,6 +348,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--streaming-rtol", type=float, default=RefinerConfig.streaming_rtol,
                     help="refiner: while submaps arrive, a round ends once a step lowers χ² by at most this fraction "
                     "(0: only at chi2_rtol)")
+    ap.add_argument("--settle-s", type=float, default=RefinerConfig.settle_s,
+                    help="refiner: rounds run to chi2_rtol once no submap has arrived for this long, s")
     ap.add_argument("--no-isam2", action="store_true", help="ours only (the levers' comparisons)")
     args = ap.parse_args(argv)
     entries = []
@@ -323,7 +359,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{source} missing: {name} skipped", file=sys.stderr)
             continue
         config = RefinerConfig(
-            growth=args.growth, idle_s=args.idle_s, streaming_rtol=args.streaming_rtol,
+            growth=args.growth, idle_s=args.idle_s, streaming_rtol=args.streaming_rtol, settle_s=args.settle_s,
             reuse_analysis=not args.no_reuse_analysis,
         )
         entries.append(race_stream(name, source, config, isam2=not args.no_isam2))

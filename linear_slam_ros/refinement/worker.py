@@ -4,7 +4,7 @@
 the threads of the parent) running :func:`serve`: it takes submissions and linear estimates from
 a queue, runs :class:`~linear_slam_ros.refinement.online.OnlineRefiner` one Gauss-Newton step at a
 time, reads the queue between steps (new submaps are taken in mid-round when due; a round that
-ended at ``streaming_rtol`` while submaps arrived resumes once the stream is idle), and hands
+ended at ``streaming_rtol`` while submaps arrived resumes once none has come for ``settle_s``), and hands
 each refined map to a sink: after a round converges, at most every ``publish_period`` s while
 one runs, and once the stream is idle (nothing queued, nothing arrived for ``idle_s``) after
 every step that lowered χ² by at most :data:`NEAR_OPTIMUM` (the last submaps' map is out as soon
@@ -148,8 +148,8 @@ def serve(
         while running:
             busy = not refiner.converged
             due_in = refiner.seconds_until_due()
-            if not refiner.settled:  # a round ended at streaming_rtol resumes once the stream is idle
-                due_in = min(due_in if due_in is not None else math.inf, refiner.seconds_until_idle())
+            if not refiner.settled:  # a round ended at streaming_rtol resumes once the stream has settled
+                due_in = min(due_in if due_in is not None else math.inf, refiner.seconds_until_settled())
             timeout = 0.0 if busy else min(due_in if due_in is not None else math.inf, PARENT_POLL_S)
             messages = _drain(inbox, timeout)
             for kind, payload in messages:

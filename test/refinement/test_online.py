@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -89,29 +91,32 @@ def _round_on(city: tuple[LocalMap, ...], config: RefinerConfig, clock: FakeCloc
     return refiner
 
 
-def test_a_round_ends_early_while_submaps_arrive_and_resumes_once_idle(city: tuple[LocalMap, ...]) -> None:
-    """While the stream is not idle a round ends at streaming_rtol (not settled, reported not converged);
-    once idle it resumes to chi2_rtol and reaches the same χ² as a round that never stopped."""
+def test_a_round_ends_early_while_submaps_arrive_and_resumes_once_settled(city: tuple[LocalMap, ...]) -> None:
+    """While submaps arrive a round ends at streaming_rtol (not settled, reported not converged); once none
+    has come for settle_s it resumes to chi2_rtol and reaches the same χ² as a round that never stopped."""
     maps = city[:150]
     clock = FakeClock()
     tight = _round_on(maps, RefinerConfig(idle_s=0.05, streaming_rtol=0.0), clock)
     while not tight.iterate():
         pass
-    early = _round_on(maps, RefinerConfig(idle_s=0.05, streaming_rtol=1e-2), clock)
-    while not early.iterate():  # the clock stands still: the stream is not idle
+    early = _round_on(maps, RefinerConfig(idle_s=0.05, settle_s=0.5, streaming_rtol=1e-2), clock)
+    while not early.iterate():  # the clock stands still: submaps are still arriving
         pass
     assert early.converged and not early.settled and not early.result().converged
     assert early.iterations < tight.iterations
     assert early.last_relative_decrease <= 1e-2
-    assert not early.resume()  # not idle yet
-    assert early.seconds_until_idle() == pytest.approx(0.05)
-    clock.t += 0.05
-    assert early.seconds_until_idle() == 0.0 and early.resume() and not early.converged
+    assert not early.resume() and early.seconds_until_settled() == pytest.approx(0.5)
+    clock.t += 0.1  # idle (queued submaps would be taken in), not settled: a pause of the stream
+    assert early.stream_idle() and not early.resume()
+    clock.t += 0.4
+    assert early.seconds_until_settled() == 0.0 and early.resume() and not early.converged
     while not early.iterate():
         pass
     assert early.settled and early.result().converged and not early.resume()
     assert abs(early.chi2 - tight.chi2) <= 1e-8 * tight.chi2
     assert tight.settled and tight.result().converged
+    early.submit(Submission(len(maps) + 1, city[len(maps)], clock.t))
+    assert early.seconds_until_settled() == math.inf  # queued: taken in first
 
 
 def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
@@ -119,6 +124,8 @@ def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
         RefinerConfig(growth=0)
     with pytest.raises(ConfigError, match="refiner streaming_rtol=1.0"):
         RefinerConfig(streaming_rtol=1.0)
+    with pytest.raises(ConfigError, match="refiner settle_s=nan"):
+        RefinerConfig(settle_s=float("nan"))
     with pytest.raises(ConfigError, match="refiner max_round_iterations=0"):
         RefinerConfig(max_round_iterations=0)
     with pytest.raises(InvalidMapError, match="holds no submap yet"):

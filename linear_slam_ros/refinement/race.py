@@ -152,8 +152,15 @@ class _Outputs(threading.Thread):
         self._worker = worker
         self._done = threading.Event()
         self.seconds = 0.0
+        self.error: BaseException | None = None
 
     def run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # raised again by stop(), in the race's thread
+            self.error = exc
+
+    def _loop(self) -> None:
         while not self._done.wait(OUTPUT_PERIOD_S if self.seconds else 0.01):
             state = self._joiner.state
             if state.n_joined == 0:
@@ -168,9 +175,11 @@ class _Outputs(threading.Thread):
                 return
 
     def stop(self) -> None:
-        """End the loop (after the output under way) and wait for it."""
+        """End the loop (after the output under way), wait for it, and raise what it raised."""
         self._done.set()
         self.join()
+        if self.error is not None:
+            raise RuntimeError("the race's output thread failed") from self.error
 
 
 def _linear_map(joiner: Joiner) -> LocalMap:

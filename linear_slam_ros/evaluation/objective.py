@@ -18,7 +18,7 @@ import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import FrameError
 from linear_slam_ros.core.geometry import points_to_frame, pose_size, poses_to_frame, wrap_angle
-from linear_slam_ros.core.local_map import POSE, LocalMap, pose_key, to_dense
+from linear_slam_ros.core.local_map import POSE, LocalMap, block_diagonal, pose_key
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -97,7 +97,7 @@ class MapObjective:
             feat_cols.append(offsets[pos[~is_pose]])
             feat_ref.append(np.full(int((~is_pose).sum()), ref))
             zs.append(m.x)
-            infos.append(m.info if sp.issparse(m.info) else sp.csr_matrix(to_dense(m.info)))
+            infos.append(m.info)
             angle_rows.append(m.angles)
             row += m.state_dim
         cat = lambda parts: np.concatenate(parts).astype(np.int64) if parts else np.zeros(0, np.int64)  # noqa: E731
@@ -106,8 +106,7 @@ class MapObjective:
             n_state=layout.state_dim,
             origin_id=layout.frame_id,
             z=np.concatenate(zs),
-            # scipy-stubs type block_diag of csr_matrix blocks as csr_array | csr_matrix; it is a csr_matrix
-            weight=sp.block_diag(infos, format="csr"),  # type: ignore[arg-type]
+            weight=block_diagonal(infos),
             angle_rows=np.concatenate(angle_rows),
             feat_rows=cat(feat_rows),
             feat_cols=cat(feat_cols),

@@ -45,7 +45,18 @@ from linear_slam_ros.core.geometry import (
     poses_to_frame,
     wrap_angle,
 )
-from linear_slam_ros.core.local_map import POSE, LocalMap, angle_mask, pose_key, to_dense, var_keys, var_offsets, var_sizes
+from linear_slam_ros.core.local_map import (
+    POSE,
+    InfoMatrix,
+    LocalMap,
+    angle_mask,
+    block_diagonal,
+    pose_key,
+    to_csr,
+    var_keys,
+    var_offsets,
+    var_sizes,
+)
 from linear_slam_ros.evaluation.objective import MapObjective
 
 logger = logging.getLogger(__name__)
@@ -189,7 +200,7 @@ class _Records:
     pose_rows: list[IntArray] = field(default_factory=list)
     pose_cols: list[IntArray] = field(default_factory=list)
     pose_ref: list[IntArray] = field(default_factory=list)
-    weights: list[sp.csr_matrix] = field(default_factory=list)
+    weights: list[InfoMatrix] = field(default_factory=list)  # the absorbed ones: one CSR matrix
 
 
 def _cat(parts: list[npt.NDArray[np.generic]], dtype: type) -> npt.NDArray[np.generic]:
@@ -343,8 +354,7 @@ class OnlineRefiner:
                 _cat(getattr(rec, name), bool if name == "angle_rows" else (float if name == "z" else np.int64))
             )
         if rec.weights:
-            merged: sp.csr_matrix = sp.block_diag([*self._records.weights, *rec.weights], format="csr")  # type: ignore[assignment]
-            self._records.weights = [merged]
+            self._records.weights = [block_diagonal(rec.weights, self._records.weights[0] if self._records.weights else None)]
         self.n_absorbed += taken
         self._build_objective()
         self.round_iterations = 0
@@ -395,7 +405,7 @@ class OnlineRefiner:
         rec.feat_ref.append(np.full(int((~is_pose).sum()), ref))
         rec.z.append(m.x)
         rec.angle_rows.append(m.angles)
-        rec.weights.append(m.info if sp.issparse(m.info) else sp.csr_matrix(to_dense(m.info)))
+        rec.weights.append(m.info)
         self._n_rows += m.state_dim
 
     def _initial_values(
@@ -466,7 +476,7 @@ class OnlineRefiner:
         assert self._origin is not None
         self._objective = MapObjective(
             dim=self._dim, n_state=self._n_state, origin_id=self._origin, z=np.concatenate(rec.z),
-            weight=rec.weights[0], angle_rows=np.concatenate(rec.angle_rows),
+            weight=to_csr(rec.weights[0]), angle_rows=np.concatenate(rec.angle_rows),
             feat_rows=np.concatenate(rec.feat_rows), feat_cols=np.concatenate(rec.feat_cols),
             feat_ref=np.concatenate(rec.feat_ref), pose_rows=np.concatenate(rec.pose_rows),
             pose_cols=np.concatenate(rec.pose_cols), pose_ref=np.concatenate(rec.pose_ref),

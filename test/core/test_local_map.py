@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask, block_diagonal
 
 
 def _good(**over):
@@ -84,3 +84,26 @@ def test_angle_mask_3d():
 def test_pose_lookup_error_names_the_map():
     with pytest.raises(KeyError, match="pose 5 is not in map 'lm'"):
         _good().pose(5)
+
+
+def test_block_diagonal_equals_scipys_block_diag(rng):
+    """Dense blocks (zeros left out), sparse ones (stored entries kept, duplicates summed, unsorted
+    indices sorted), a base to extend and empty blocks: the same canonical CSR as scipy's."""
+    dense = rng.standard_normal((4, 4))
+    dense[1, 2] = 0.0
+    unsorted = sp.csr_matrix((np.array([1.0, 2.0, 3.0, 0.0]), np.array([2, 0, 1, 1]), np.array([0, 2, 3, 4])), shape=(3, 3))
+    unsorted.has_sorted_indices = False
+    duplicated = sp.coo_matrix((np.array([1.0, 2.0]), (np.array([0, 0]), np.array([1, 1]))), shape=(2, 2))
+    blocks = [dense, unsorted, sp.csr_matrix((0, 0)), duplicated, np.eye(1) * 5.0]
+    base = sp.random(5, 5, density=0.4, random_state=1, format="csr")
+    for b in (None, base):
+        got = block_diagonal(blocks, b)
+        parts = ([] if b is None else [b]) + [sp.csr_matrix(x) if not sp.issparse(x) else x for x in blocks]
+        want = sp.block_diag(parts, format="csr")
+        want.sum_duplicates()
+        assert got.shape == want.shape and got.has_canonical_format
+        np.testing.assert_array_equal(got.indptr, want.indptr)
+        np.testing.assert_array_equal(got.indices, want.indices)
+        np.testing.assert_array_equal(got.data, want.data)
+        assert got.indices.dtype == np.int32
+    assert block_diagonal([]).shape == (0, 0)

@@ -18,7 +18,16 @@ import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import FrameError
 from linear_slam_ros.core.geometry import angles3, dangles3, pose_size, rot3, rot3_and_drot3, single_rotation, wrap_angle
-from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, pose_key, seed_key_lookup, var_offsets, var_sizes
+from linear_slam_ros.core.local_map import (
+    POSE,
+    InfoMatrix,
+    LocalMap,
+    csr_from_arrays,
+    pose_key,
+    seed_key_lookup,
+    var_offsets,
+    var_sizes,
+)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -246,9 +255,9 @@ def transform_information(info: InfoMatrix, back: FrameJacobian) -> InfoMatrix:
     # G = D + C S, with D block diagonal (no entry in the slot's rows or columns), C the slot's
     # dense column block and S the selection of the slot's columns:
     #   G^T I G = D^T I D + (D^T I C) S + S^T (C^T I D) + S^T (C^T I C) S.
-    # D^T I D keeps the pattern of I (two products with at most three entries a row); the rest
-    # is the slot's rows and columns, from the dense (n, p) block I C. Half the work of the
-    # products with G, whose dense column block every row of G holds.
+    # D^T I D stays within the blocks of I's pattern (two products with at most three entries a
+    # row); the rest is the slot's rows and columns, from the dense (n, p) block I C. Half the
+    # work of the products with G, whose dense column block every row of G holds.
     d_t = back.block_diagonal(n, transpose=True)
     moved = d_t @ info @ d_t.T.tocsr()
     moved.sort_indices()  # the products leave each row's indices unsorted
@@ -278,19 +287,18 @@ def _slot_lines(info: sp.csr_matrix, back: FrameJacobian, d_t: sp.csr_matrix) ->
     counts[frame_cols] = n
     indptr = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(counts, out=indptr[1:])
-    index_dtype = np.int32 if indptr[-1] <= np.iinfo(np.int32).max else np.int64
-    indices = np.empty(indptr[-1], dtype=index_dtype)
+    indices = np.empty(indptr[-1], dtype=np.int64)
     data = np.empty(indptr[-1])
     others = np.ones(n, dtype=bool)
     others[frame_cols] = False
     at = indptr[:-1][others][:, None] + np.arange(p)  # the slot's columns of every other row
     indices[at] = frame_cols
     data[at] = lines[others]
-    everything = np.arange(n, dtype=index_dtype)
+    everything = np.arange(n)
     for j, row in enumerate(frame_cols):  # the slot's rows: the transpose of its columns
         indices[indptr[row] : indptr[row + 1]] = everything
         data[indptr[row] : indptr[row + 1]] = lines[:, j]
-    out = sp.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=(n, n))
+    out = csr_from_arrays(data, indices, indptr, n)
     out.has_sorted_indices = True
     return out
 

@@ -145,14 +145,23 @@ def block_diagonal(blocks: Sequence[InfoMatrix], base: InfoMatrix | None = None)
         nnz += int(ptr[-1])
     indptr = np.concatenate([*starts, np.array([nnz], dtype=np.int64)])
     all_indices = np.concatenate(indices) if indices else np.zeros(0, dtype=np.int64)
-    all_data = np.concatenate(data) if data else np.zeros(0)
-    out: sp.csr_matrix
-    if max(n, nnz) <= np.iinfo(np.int32).max:  # 32-bit indices, as scipy chooses for such sizes
-        out = sp.csr_matrix((all_data, all_indices.astype(np.int32), indptr.astype(np.int32)), shape=(n, n))
-    else:
-        out = sp.csr_matrix((all_data, all_indices, indptr), shape=(n, n))
+    out = csr_from_arrays(np.concatenate(data) if data else np.zeros(0), all_indices, indptr, n)
     out.has_canonical_format = True
     return out
+
+
+def csr_from_arrays(data: FloatArray, indices: IntArray, indptr: IntArray, n: int) -> sp.csr_matrix:
+    """Return the ``(n, n)`` CSR matrix of these arrays, with 32-bit indices when they fit (as scipy chooses).
+
+    Args:
+        data: ``(nnz,)`` values.
+        indices: ``(nnz,)`` column of each value (any integer type).
+        indptr: ``(n + 1,)`` where each row starts in ``data`` (any integer type).
+        n: the matrix's size.
+    """
+    if max(n, int(indptr[-1])) <= np.iinfo(np.int32).max:
+        return sp.csr_matrix((data, indices.astype(np.int32), indptr.astype(np.int32)), shape=(n, n))
+    return sp.csr_matrix((data, indices.astype(np.int64), indptr.astype(np.int64)), shape=(n, n))
 
 
 def seed_key_lookup(value: Any, keys: IntArray, key_set: dict[int, int]) -> None:

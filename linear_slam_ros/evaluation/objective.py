@@ -170,11 +170,11 @@ class MapObjective:
 def chi2(global_map: LocalMap, maps: Sequence[LocalMap]) -> float:
     """Return the χ² of a joined map against all local maps (eq. 7 summed over every map).
 
-    The joined map may be in any frame that is one of its poses or the maps' first frame; it is
-    moved to the frame of ``maps[0]``'s frame pose first.
+    The joined map may be in any frame that is one of its poses or the maps' first frame; its
+    estimate is moved to the frame of ``maps[0]``'s frame pose first (its information is not used).
     """
-    from linear_slam_ros.core.frames import change_frame
+    from linear_slam_ros.core.frames import estimate_in_frame
 
     origin = maps[0].frame_id
-    layout = change_frame(global_map, origin) if global_map.frame_id != origin else global_map
+    layout = estimate_in_frame(global_map, origin) if global_map.frame_id != origin else global_map
     return MapObjective.build(layout, maps).chi2(layout.x)

@@ -286,7 +286,7 @@ class OnlineRefiner:
 
     def stream_settled(self) -> bool:
         """Whether nothing is queued and no submap has arrived for ``settle_s`` s (nor ``idle_s``)."""
-        return not self._pending and self._clock() - self._last_received >= max(self.config.idle_s, self.config.settle_s)
+        return self.seconds_until_settled() == 0.0
 
     def seconds_until_settled(self) -> float:
         """Seconds until :meth:`stream_settled` if nothing more arrives (0: it is; inf: submaps are queued)."""

@@ -52,7 +52,7 @@ from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.joiner.config import OutputFrame
-from linear_slam_ros.joiner.joiner import Joiner, global_result
+from linear_slam_ros.joiner.joiner import Joiner, JoinerState, global_result
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.refinement.online import LinearEstimate, RefinerConfig, Submission
 from linear_slam_ros.refinement.worker import Published, RefineWorker, SinkSpec
@@ -92,7 +92,7 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
     finally:
         outputs.stop()
     t_join_end = time.perf_counter()
-    linear_map = _linear_map(joiner)
+    linear_map = _linear_map(joiner.state)
     worker.linear(LinearEstimate.of_map(linear_map, joiner.state.n_joined))
     final_linear_seconds = time.perf_counter() - t_join_end
     output_seconds = outputs.seconds
@@ -166,9 +166,7 @@ class _Outputs(threading.Thread):
             if state.n_joined == 0:
                 continue
             t0 = time.perf_counter()
-            result = global_result(state, OutputFrame.END_POSE)
-            assert isinstance(result, LocalMap)
-            self._worker.linear(LinearEstimate.of_map(result, state.n_joined))
+            self._worker.linear(LinearEstimate.of_map(_linear_map(state), state.n_joined))
             cost = time.perf_counter() - t0
             self.seconds += cost
             if self._done.wait(max(0.0, cost / OUTPUT_DUTY - cost - OUTPUT_PERIOD_S)):
@@ -182,9 +180,9 @@ class _Outputs(threading.Thread):
             raise RuntimeError("the race's output thread failed") from self.error
 
 
-def _linear_map(joiner: Joiner) -> LocalMap:
+def _linear_map(state: JoinerState) -> LocalMap:
     """The joiner's global map as the node's publisher computes it by default (``output_frame`` ``end_pose``)."""
-    result = global_result(joiner.state, OutputFrame.END_POSE)
+    result = global_result(state, OutputFrame.END_POSE)
     assert isinstance(result, LocalMap)
     return result
 

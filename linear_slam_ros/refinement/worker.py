@@ -147,10 +147,11 @@ def serve(
     try:
         while running:
             busy = not refiner.converged
-            due_in = refiner.seconds_until_due()
+            due = refiner.seconds_until_due()
+            due_in = math.inf if due is None else due
             if not refiner.settled:  # a round ended at streaming_rtol resumes once the stream has settled
-                due_in = min(due_in if due_in is not None else math.inf, refiner.seconds_until_settled())
-            timeout = 0.0 if busy else min(due_in if due_in is not None else math.inf, PARENT_POLL_S)
+                due_in = min(due_in, refiner.seconds_until_settled())
+            timeout = 0.0 if busy else min(due_in, PARENT_POLL_S)
             messages = _drain(inbox, timeout)
             for kind, payload in messages:
                 if kind == "stop":

@@ -88,6 +88,12 @@ class RefinerConfig:
         reuse_analysis: keep CHOLMOD's analysis (ordering, symbolic factorisation) across the
             steps of a round, whose normal equations share one pattern (with the ``libcholmod``
             backend; otherwise each step solves afresh).
+        place_steps: before a round over more submaps of which some new variables were chained
+            (the linear estimate lacks them), at most this many Gauss-Newton steps over the new
+            submaps alone move the new variables, the absorbed ones held where the refined
+            solution has them (0: the new variables start where the warm start put them).
+        place_rtol: ... stopping at the first such step that lowers the new submaps' χ² by at
+            most this fraction.
     """
 
     growth: float = 0.25
@@ -99,6 +105,8 @@ class RefinerConfig:
     publish_period: float = 1.0
     max_round_iterations: int = 50
     reuse_analysis: bool = True
+    place_steps: int = 2
+    place_rtol: float = 1e-3
 
     def __post_init__(self) -> None:
         checks = (
@@ -110,6 +118,8 @@ class RefinerConfig:
             ("step_tol", self.step_tol >= 0),
             ("publish_period", self.publish_period >= 0),
             ("max_round_iterations", self.max_round_iterations >= 1),
+            ("place_steps", self.place_steps >= 0),
+            ("place_rtol", 0 <= self.place_rtol < 1),
         )
         for name, ok in checks:
             if not ok:
@@ -331,13 +341,14 @@ class OnlineRefiner:
             self._dim = batch[0].submap.dim
             self._index[pose_key(self._origin)] = -2
         lin = self._anchored_linear()
+        n_state_before, n_rows_before = self._n_state, self._n_rows
         self._buf = np.empty(max(2 * self._n_state, 1024))
         self._buf[: self._n_state] = self._x
         rec = _Records()
-        taken = 0
+        taken = chained = 0
         for sub in batch:
             try:
-                self._take(sub.submap, lin, rec)
+                chained += self._take(sub.submap, lin, rec)
             except LinearSlamError as exc:
                 self.n_skipped += 1
                 logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
@@ -349,12 +360,19 @@ class OnlineRefiner:
         self._x = self._buf[: self._n_state].copy()
         self._buf = np.zeros(0)
         self._angles = angle_mask(self._dim, np.asarray(self._kinds, dtype=np.int8))
-        for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref"):
-            getattr(self._records, name).append(
-                _cat(getattr(rec, name), bool if name == "angle_rows" else (float if name == "z" else np.int64))
-            )
+        batch_records = {
+            name: _cat(getattr(rec, name), bool if name == "angle_rows" else (float if name == "z" else np.int64))
+            for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref")
+        }
+        for name, value in batch_records.items():
+            getattr(self._records, name).append(value)
         if rec.weights:
-            self._records.weights = [block_diagonal(rec.weights, self._records.weights[0] if self._records.weights else None)]
+            batch_weight = block_diagonal(rec.weights)
+            if self.config.place_steps and chained and n_state_before:
+                self._place_new(batch_records, batch_weight, n_state_before, n_rows_before)
+            self._records.weights = [
+                block_diagonal([batch_weight], self._records.weights[0]) if self._records.weights else batch_weight
+            ]
         self.n_absorbed += taken
         self._build_objective()
         self.round_iterations = 0
@@ -362,8 +380,69 @@ class OnlineRefiner:
         self.last_relative_decrease = math.inf
         return taken
 
-    def _take(self, m: LocalMap, lin: tuple[dict[int, int], FloatArray, IntArray] | None, rec: _Records) -> None:
-        """Index one submap's variables (appending new ones with their warm start) and its records."""
+    def _place_new(
+        self, batch: dict[str, npt.NDArray[np.generic]], weight: sp.csr_matrix, n_old: int, row0: int
+    ) -> None:
+        """Move the variables new in this batch to the optimum of the batch's submaps alone, the others held.
+
+        The warm start chains a variable the linear estimate lacks from its submap's frame pose,
+        so over a long batch (the end of a stream, the linear map not out yet) the chain drifts
+        and the round's first full steps are spent undoing it. The batch's rows are the only ones
+        that see new variables, so Gauss-Newton over them and the new columns (at most
+        ``place_steps`` steps, until one lowers their χ² by at most ``place_rtol``) is small
+        beside a step over the whole map. A step that fails leaves the warm start as it is.
+
+        Args:
+            batch: the batch's index records (rows from ``row0``; columns over the whole state).
+            weight: the batch's block-diagonal information, ``(rows, rows)``.
+            n_old: state scalars absorbed before the batch (held); the rest are new.
+            row0: the batch's first row in the whole objective.
+        """
+        assert self._origin is not None
+        int_rows = lambda name: batch[name].astype(np.int64, copy=False)  # noqa: E731
+        objective = MapObjective(
+            dim=self._dim, n_state=self._n_state, origin_id=self._origin,
+            z=batch["z"].astype(np.float64, copy=False), weight=weight,
+            angle_rows=batch["angle_rows"].astype(bool, copy=False),
+            feat_rows=int_rows("feat_rows") - row0, feat_cols=int_rows("feat_cols"), feat_ref=int_rows("feat_ref"),
+            pose_rows=int_rows("pose_rows") - row0, pose_cols=int_rows("pose_cols"), pose_ref=int_rows("pose_ref"),
+        )
+        held = self._x[:n_old]
+        angles = self._angles[n_old:]
+
+        def residuals(x_new: FloatArray) -> tuple[FloatArray, sp.csr_matrix]:
+            r, jac = objective.residuals(np.concatenate([held, x_new]), jacobian=True)
+            assert jac is not None
+            return r, jac[:, n_old:].tocsr()
+
+        def apply_step(x_new: FloatArray, dx: FloatArray) -> FloatArray:
+            moved = x_new + dx
+            moved[angles] = wrap_angle(moved[angles])
+            return moved
+
+        x_new = self._x[n_old:].copy()
+        r, jac = residuals(x_new)
+        chi2 = float(r @ (weight @ r))
+        for _ in range(self.config.place_steps):
+            try:
+                step = least_squares.gauss_newton_step(residuals, weight, x_new, r, jac, chi2, apply_step)
+            except LinearSlamError as exc:
+                logger.debug("refiner: placing %d new scalars stopped: %s", x_new.size, exc)
+                break
+            if step is None:
+                break
+            decrease = chi2 - step.chi2
+            x_new, r, jac, chi2 = step.x, step.r, step.jacobian, step.chi2
+            if decrease <= self.config.place_rtol * max(chi2, 1e-300):
+                break
+        self._x[n_old:] = x_new
+
+    def _take(self, m: LocalMap, lin: tuple[dict[int, int], FloatArray, IntArray] | None, rec: _Records) -> int:
+        """Index one submap's variables (appending new ones with their warm start) and its records.
+
+        Returns:
+            How many of its new variables were chained from its frame pose (the linear estimate lacks them).
+        """
         dim, p = self._dim, pose_size(self._dim)
         if m.dim != dim:
             raise InvalidMapError(f"submap {m.name!r} is {m.dim}D; the refiner's map is {dim}D")
@@ -393,8 +472,7 @@ class OnlineRefiner:
                 fresh.append(i)
             pos[i] = j
             cols[i] = self._offsets[j] if j >= 0 else -1  # -1: the origin pose (a zero pose, no column)
-        if fresh:
-            self._initial_values(m, fresh, frame_value, lin)
+        chained = self._initial_values(m, fresh, frame_value, lin) if fresh else 0
         is_pose = m.kinds == POSE
         rows = self._n_rows + local_offsets
         rec.pose_rows.append(rows[is_pose])
@@ -407,17 +485,19 @@ class OnlineRefiner:
         rec.angle_rows.append(m.angles)
         rec.weights.append(m.info)
         self._n_rows += m.state_dim
+        return chained
 
     def _initial_values(
         self, m: LocalMap, fresh: list[int], frame_value: FloatArray, lin: tuple[dict[int, int], FloatArray, IntArray] | None
-    ) -> None:
+    ) -> int:
         """Write the warm start of a submap's new variables (the anchored linear estimate, else chained
-        from the frame pose) into the state buffer, growing it as needed."""
+        from the frame pose) into the state buffer, growing it as needed; return how many were chained."""
         dim = self._dim
         if self._n_state > self._buf.size:
             grown = np.empty(max(2 * self._buf.size, self._n_state))
             grown[: self._buf.size] = self._buf
             self._buf = grown
+        chained = 0
         for i in fresh:
             local = m.x[m.scalar_slice(i)]
             key = int(m.keys[i])
@@ -428,9 +508,12 @@ class OnlineRefiner:
             elif m.kinds[i] == POSE:
                 t, a = poses_from_frame(dim, frame_value[:dim], frame_value[dim:], local[:dim], local[dim:])
                 value = np.concatenate([t, a])
+                chained += 1
             else:
                 value = points_from_frame(dim, frame_value[:dim], frame_value[dim:], local)
+                chained += 1
             self._buf[start : start + local.size] = value
+        return chained
 
     def _anchored_linear(self) -> tuple[dict[int, int], FloatArray, IntArray] | None:
         """The linear estimate moved rigidly onto the refined solution at their newest common pose.

@@ -357,6 +357,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "(0: only at chi2_rtol)")
     ap.add_argument("--settle-s", type=float, default=RefinerConfig.settle_s,
                     help="refiner: rounds run to chi2_rtol once no submap has arrived for this long, s")
+    ap.add_argument("--place-steps", type=int, default=RefinerConfig.place_steps,
+                    help="refiner: Gauss-Newton steps over a batch's submaps alone that place its new variables "
+                    "before the round (0: the warm start as it is)")
     ap.add_argument("--no-isam2", action="store_true", help="ours only (the levers' comparisons)")
     args = ap.parse_args(argv)
     entries = []
@@ -367,7 +370,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             continue
         config = RefinerConfig(
             growth=args.growth, idle_s=args.idle_s, streaming_rtol=args.streaming_rtol, settle_s=args.settle_s,
-            reuse_analysis=not args.no_reuse_analysis,
+            reuse_analysis=not args.no_reuse_analysis, place_steps=args.place_steps,
         )
         entries.append(race_stream(name, source, config, isam2=not args.no_isam2))
     args.out.mkdir(parents=True, exist_ok=True)

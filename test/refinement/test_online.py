@@ -5,13 +5,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 import linear_slam_ros.evaluation.city  # noqa: F401 - registers synthetic:NAME
-from linear_slam_ros.core.errors import ConfigError, InvalidMapError
+from linear_slam_ros.core import least_squares
+from linear_slam_ros.core.errors import ConfigError, InvalidMapError, SolverError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.nonlinear import refine
-from linear_slam_ros.evaluation.objective import chi2
+from linear_slam_ros.evaluation.objective import MapObjective, chi2
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.io.datasets import read_dataset
 from linear_slam_ros.joiner.config import OutputFrame
@@ -25,6 +27,8 @@ from linear_slam_ros.refinement.online import (
     refine_offline,
 )
 from linear_slam_ros.refinement.worker import SinkSpec
+
+FloatArray = npt.NDArray[np.float64]
 
 
 @pytest.fixture(scope="module")
@@ -128,6 +132,10 @@ def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
         RefinerConfig(settle_s=float("nan"))
     with pytest.raises(ConfigError, match="refiner max_round_iterations=0"):
         RefinerConfig(max_round_iterations=0)
+    with pytest.raises(ConfigError, match="refiner place_steps=-1"):
+        RefinerConfig(place_steps=-1)
+    with pytest.raises(ConfigError, match="refiner place_rtol=1.0"):
+        RefinerConfig(place_rtol=1.0)
     with pytest.raises(InvalidMapError, match="holds no submap yet"):
         OnlineRefiner().result()
     with pytest.raises(InvalidMapError, match="no submaps to refine"):
@@ -155,3 +163,68 @@ def test_an_extra_measurement_is_absorbed_but_not_counted_as_a_submap(city: tupl
     while not refiner.iterate():
         pass
     assert refiner.result().n_submaps == 2
+
+
+def _chained_batch(city: tuple[LocalMap, ...], config: RefinerConfig) -> tuple[OnlineRefiner, FloatArray]:
+    """A refiner converged on the first 100 submaps that has then absorbed 120 more without a linear estimate
+    (their new variables chained from the frame poses), and the solution it held before the batch."""
+    refiner = OnlineRefiner(config)
+    for seq, m in enumerate(city[:100], start=1):
+        refiner.submit(Submission(seq, m, 0.0))
+    refiner.absorb()
+    while not refiner.iterate():
+        pass
+    held = refiner.result(information=False).map.x.copy()
+    for seq, m in enumerate(city[100:220], start=101):
+        refiner.submit(Submission(seq, m, 0.0))
+    refiner.absorb()
+    return refiner, held
+
+
+def _batch_gradient(refiner: OnlineRefiner, batch: tuple[LocalMap, ...], n_held: int) -> FloatArray:
+    """``J^T W r`` of the batch's submaps alone over the new scalars, at the refiner's estimate."""
+    layout = refiner.result(information=False).map
+    objective = MapObjective.build(layout, batch)
+    r, jac = objective.residuals(layout.x, jacobian=True)
+    assert jac is not None
+    return np.asarray(jac.T @ (objective.weight @ r))[n_held:]
+
+
+def test_new_variables_are_placed_against_the_held_solution(city: tuple[LocalMap, ...]) -> None:
+    """A batch the linear estimate does not cover is placed before its round: the absorbed variables stay
+    where the refined solution has them (bit for bit), the new ones at the optimum of the batch's submaps
+    alone (their gradient vanishes), so the round starts lower and reaches the same optimum in fewer steps."""
+    config = {"streaming_rtol": 0.0, "chi2_rtol": 1e-12}
+    chained, held = _chained_batch(city, RefinerConfig(place_steps=0, **config))
+    placed, held_too = _chained_batch(city, RefinerConfig(place_steps=10, place_rtol=0.0, **config))
+    np.testing.assert_array_equal(held, held_too)
+    np.testing.assert_array_equal(placed.result(information=False).map.x[: held.size], held)
+    batch = city[100:220]
+    start = np.abs(_batch_gradient(chained, batch, held.size)).max()
+    assert np.abs(_batch_gradient(placed, batch, held.size)).max() <= 1e-6 * start
+    assert placed.initial_chi2 < 0.5 * chained.initial_chi2
+    before = (chained.iterations, placed.iterations)
+    for refiner in (chained, placed):
+        while not refiner.iterate():
+            pass
+    assert placed.iterations - before[1] < chained.iterations - before[0]
+    assert abs(placed.chi2 - chained.chi2) <= 1e-8 * chained.chi2
+
+
+def test_a_placement_that_fails_leaves_the_warm_start(city: tuple[LocalMap, ...], monkeypatch: pytest.MonkeyPatch) -> None:
+    chained, _ = _chained_batch(city, RefinerConfig(place_steps=0))
+    refiner = OnlineRefiner(RefinerConfig(place_steps=5))
+    for seq, m in enumerate(city[:100], start=1):
+        refiner.submit(Submission(seq, m, 0.0))
+    refiner.absorb()
+    while not refiner.iterate():
+        pass
+    for seq, m in enumerate(city[100:220], start=101):
+        refiner.submit(Submission(seq, m, 0.0))
+
+    def singular(*args: object, **kwargs: object) -> None:
+        raise SolverError("normal equations are singular")
+
+    monkeypatch.setattr(least_squares, "gauss_newton_step", singular)
+    assert refiner.absorb() == 120
+    np.testing.assert_array_equal(refiner.result(information=False).map.x, chained.result(information=False).map.x)

@@ -38,11 +38,13 @@ import scipy.sparse as sp
 from linear_slam_ros.core import cholmod, least_squares, solvers
 from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
 from linear_slam_ros.core.geometry import (
+    angles3,
     points_from_frame,
     points_to_frame,
     pose_size,
     poses_from_frame,
     poses_to_frame,
+    rot3,
     wrap_angle,
 )
 from linear_slam_ros.core.local_map import (
@@ -213,6 +215,16 @@ class _Records:
     weights: list[InfoMatrix] = field(default_factory=list)  # the absorbed ones: one CSR matrix
 
 
+def _frame_rotation_t(dim: int, angles: FloatArray) -> FloatArray:
+    """``R^T`` of one pose's angles (``(a,)``): what takes coordinates in its frame to the world's
+    (:func:`~linear_slam_ros.core.geometry.points_from_frame`), built without the stacking that
+    :func:`~linear_slam_ros.core.geometry.rotation` needs for many poses at once."""
+    if dim == 2:
+        c, s = math.cos(angles[0]), math.sin(angles[0])
+        return np.array([[c, -s], [s, c]])
+    return rot3(angles).T
+
+
 def _cat(parts: list[npt.NDArray[np.generic]], dtype: type) -> npt.NDArray[np.generic]:
     return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype)
 
@@ -345,15 +357,8 @@ class OnlineRefiner:
         self._buf = np.empty(max(2 * self._n_state, 1024))
         self._buf[: self._n_state] = self._x
         rec = _Records()
-        taken = chained = 0
-        for sub in batch:
-            try:
-                chained += self._take(sub.submap, lin, rec)
-            except LinearSlamError as exc:
-                self.n_skipped += 1
-                logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
-                continue
-            taken += 1
+        taken, chained = self._take_batch(batch, lin, rec)
+        for sub in taken:
             self.n_submaps += not sub.extra
             self._last = sub
             self._end_id = sub.submap.end_id if sub.submap.end_id is not None else self._end_id
@@ -373,12 +378,12 @@ class OnlineRefiner:
             self._records.weights = [
                 block_diagonal([batch_weight], self._records.weights[0]) if self._records.weights else batch_weight
             ]
-        self.n_absorbed += taken
+        self.n_absorbed += len(taken)
         self._build_objective()
         self.round_iterations = 0
         self.converged = self.settled = False
         self.last_relative_decrease = math.inf
-        return taken
+        return len(taken)
 
     def _place_new(
         self, batch: dict[str, npt.NDArray[np.generic]], weight: sp.csr_matrix, n_old: int, row0: int
@@ -437,83 +442,146 @@ class OnlineRefiner:
                 break
         self._x[n_old:] = x_new
 
-    def _take(self, m: LocalMap, lin: tuple[dict[int, int], FloatArray, IntArray] | None, rec: _Records) -> int:
-        """Index one submap's variables (appending new ones with their warm start) and its records.
+    def _take_batch(
+        self, batch: list[Submission], lin: tuple[dict[int, int], FloatArray, IntArray] | None, rec: _Records
+    ) -> tuple[list[Submission], int]:
+        """Index a batch's variables (appending new ones with their warm start) and its records.
+
+        One pass over the submaps' keys in Python (the variable index is a dict); the records'
+        rows, columns and frames and the warm start are array operations over the batch.
 
         Returns:
-            How many of its new variables were chained from its frame pose (the linear estimate lacks them).
+            The submissions taken (a submap of another dimension, or whose frame pose is not in
+            the refined map, is left out with a warning and counted in :attr:`n_skipped`), and how
+            many of their new variables were chained from their frame poses.
         """
         dim, p = self._dim, pose_size(self._dim)
-        if m.dim != dim:
-            raise InvalidMapError(f"submap {m.name!r} is {m.dim}D; the refiner's map is {dim}D")
-        if m.frame_id == self._origin:
-            ref, frame_value = -1, np.zeros(p)
-        else:
-            ref_index = self._index.get(pose_key(m.frame_id))
-            if ref_index is None:
-                raise FrameError(f"frame pose {m.frame_id} of submap {m.name!r} is not in the refined map")
-            ref = self._offsets[ref_index]
-            frame_value = self._buf[ref : ref + p].copy()
-        keys = m.keys.tolist()
-        pos = np.empty(len(keys), dtype=np.int64)
-        sizes = m.sizes
-        local_offsets = m.offsets
-        cols = np.empty(len(keys), dtype=np.int64)
-        fresh: list[int] = []
-        for i, k in enumerate(keys):
-            j = self._index.get(k)
-            if j is None:
-                j = len(self._ids)
-                self._index[k] = j
-                self._ids.append(int(m.ids[i]))
-                self._kinds.append(int(m.kinds[i]))
-                self._offsets.append(self._n_state)
-                self._n_state += int(sizes[i])
-                fresh.append(i)
-            pos[i] = j
-            cols[i] = self._offsets[j] if j >= 0 else -1  # -1: the origin pose (a zero pose, no column)
-        chained = self._initial_values(m, fresh, frame_value, lin) if fresh else 0
-        is_pose = m.kinds == POSE
-        rows = self._n_rows + local_offsets
+        index, ids, kinds, offsets = self._index, self._ids, self._kinds, self._offsets
+        taken: list[Submission] = []
+        refs: list[int] = []  # per submap taken: its frame pose's first state scalar (-1: the origin)
+        var_counts: list[int] = []
+        positions: list[int] = []  # per variable of the submaps taken: its variable index (-2: the origin)
+        fresh: list[tuple[int, int, int]] = []  # per new variable: (submap taken, place in ``positions``, index)
+        n_state = self._n_state
+        for sub in batch:
+            m = sub.submap
+            try:
+                if m.dim != dim:
+                    raise InvalidMapError(f"submap {m.name!r} is {m.dim}D; the refiner's map is {dim}D")
+                ref = -1
+                if m.frame_id != self._origin:
+                    ref_index = index.get(pose_key(m.frame_id))
+                    if ref_index is None:
+                        raise FrameError(f"frame pose {m.frame_id} of submap {m.name!r} is not in the refined map")
+                    ref = offsets[ref_index]
+            except LinearSlamError as exc:
+                self.n_skipped += 1
+                logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
+                continue
+            for k, var_id, kind in zip(m.keys.tolist(), m.ids.tolist(), m.kinds.tolist(), strict=True):
+                j = index.get(k)
+                if j is None:
+                    j = len(ids)
+                    index[k] = j
+                    ids.append(var_id)
+                    kinds.append(kind)
+                    offsets.append(n_state)
+                    n_state += p if kind == POSE else dim
+                    fresh.append((len(taken), len(positions), j))
+                positions.append(j)
+            taken.append(sub)
+            refs.append(ref)
+            var_counts.append(m.n_vars)
+        self._n_state = n_state
+        if not taken:
+            return taken, 0
+        maps = [sub.submap for sub in taken]
+        kinds_batch = np.concatenate([m.kinds for m in maps]).astype(np.int8, copy=False)
+        is_pose = kinds_batch == POSE
+        sizes = np.where(is_pose, p, dim)
+        local_rows = var_offsets(sizes)  # each variable's first row in the batch
+        rows = self._n_rows + local_rows
+        pos = np.asarray(positions, dtype=np.int64)
+        state_offsets = np.asarray(offsets, dtype=np.int64)
+        cols = np.where(pos >= 0, state_offsets[np.maximum(pos, 0)], -1)  # -1: the origin pose (a zero pose, no column)
+        ref_of_var = np.repeat(np.asarray(refs, dtype=np.int64), var_counts)
         rec.pose_rows.append(rows[is_pose])
         rec.pose_cols.append(cols[is_pose])
-        rec.pose_ref.append(np.full(int(is_pose.sum()), ref))
+        rec.pose_ref.append(ref_of_var[is_pose])
         rec.feat_rows.append(rows[~is_pose])
         rec.feat_cols.append(cols[~is_pose])
-        rec.feat_ref.append(np.full(int((~is_pose).sum()), ref))
-        rec.z.append(m.x)
-        rec.angle_rows.append(m.angles)
-        rec.weights.append(m.info)
-        self._n_rows += m.state_dim
-        return chained
+        rec.feat_ref.append(ref_of_var[~is_pose])
+        z = np.concatenate([m.x for m in maps])
+        rec.z.append(z)
+        rec.angle_rows.append(angle_mask(dim, kinds_batch))
+        rec.weights.extend(m.info for m in maps)
+        self._n_rows += int(sizes.sum())
+        if not fresh:
+            return taken, 0
+        new = np.asarray(fresh, dtype=np.int64)
+        keys_batch = np.concatenate([m.keys for m in maps])
+        return taken, self._initial_values(new, keys_batch, is_pose, local_rows, z, refs, state_offsets, lin)
 
     def _initial_values(
-        self, m: LocalMap, fresh: list[int], frame_value: FloatArray, lin: tuple[dict[int, int], FloatArray, IntArray] | None
+        self, new: IntArray, keys: IntArray, is_pose: npt.NDArray[np.bool_], local_rows: IntArray, z: FloatArray,
+        refs: list[int], state_offsets: IntArray, lin: tuple[dict[int, int], FloatArray, IntArray] | None,
     ) -> int:
-        """Write the warm start of a submap's new variables (the anchored linear estimate, else chained
-        from the frame pose) into the state buffer, growing it as needed; return how many were chained."""
-        dim = self._dim
+        """Write the warm start of a batch's new variables into the state buffer, growing it as needed.
+
+        A variable takes the anchored linear estimate's value, else it is chained from its
+        submap's frame pose, a submap at a time in the batch's order (a frame pose may be new in
+        an earlier submap of the batch).
+
+        Args:
+            new: ``(k, 3)`` per new variable, its submap (place among those taken), its place among
+                the batch's variables, and its variable index.
+            keys, is_pose, local_rows: per variable of the batch: its key, whether it is a pose, its
+                first row in the batch's stacked estimate ``z``.
+            z: the batch's local estimates, stacked.
+            refs: per submap, its frame pose's first state scalar (-1: the origin).
+            state_offsets: every variable's first state scalar.
+            lin: the anchored linear estimate (:meth:`_anchored_linear`), if any.
+
+        Returns:
+            How many new variables were chained.
+        """
+        dim, p = self._dim, pose_size(self._dim)
         if self._n_state > self._buf.size:
             grown = np.empty(max(2 * self._buf.size, self._n_state))
             grown[: self._buf.size] = self._buf
             self._buf = grown
-        chained = 0
-        for i in fresh:
-            local = m.x[m.scalar_slice(i)]
-            key = int(m.keys[i])
-            start = self._offsets[self._index[key]]
-            if lin is not None and key in lin[0]:
-                j = lin[0][key]
-                value = lin[1][lin[2][j] : lin[2][j] + local.size]
-            elif m.kinds[i] == POSE:
-                t, a = poses_from_frame(dim, frame_value[:dim], frame_value[dim:], local[:dim], local[dim:])
-                value = np.concatenate([t, a])
-                chained += 1
-            else:
-                value = points_from_frame(dim, frame_value[:dim], frame_value[dim:], local)
-                chained += 1
-            self._buf[start : start + local.size] = value
-        return chained
+        buf = self._buf
+        submap, place, var = new[:, 0], new[:, 1], new[:, 2]
+        start = state_offsets[var]
+        pose = is_pose[place]
+        row = local_rows[place]
+        lin_pos = np.full(var.size, -1, dtype=np.int64)
+        if lin is not None:
+            lookup = lin[0]
+            lin_pos[:] = [lookup.get(k, -1) for k in keys[place].tolist()]
+            for mask, size in ((pose & (lin_pos >= 0), p), (~pose & (lin_pos >= 0), dim)):
+                if mask.any():
+                    buf[start[mask, None] + np.arange(size)] = lin[1][lin[2][lin_pos[mask], None] + np.arange(size)]
+        chain = np.flatnonzero(lin_pos < 0)
+        if not chain.size:
+            return 0
+        groups = np.split(chain, np.flatnonzero(np.diff(submap[chain])) + 1)
+        for group in groups:  # a submap at a time: its frame pose may have been chained by the one before
+            ref = refs[int(submap[group[0]])]
+            frame = np.zeros(p) if ref < 0 else buf[ref : ref + p].copy()
+            to_world = _frame_rotation_t(dim, frame[dim:])
+            poses, points = group[pose[group]], group[~pose[group]]
+            if poses.size:
+                local = z[row[poses, None] + np.arange(p)]
+                buf[start[poses, None] + np.arange(dim)] = local[:, :dim] @ to_world.T + frame[:dim]
+                if dim == 2:
+                    buf[start[poses] + dim] = wrap_angle(local[:, dim] + frame[dim])
+                else:
+                    buf[start[poses, None] + np.arange(dim, p)] = angles3(rot3(local[:, dim:]) @ to_world.T)
+            if points.size:
+                local = z[row[points, None] + np.arange(dim)]
+                buf[start[points, None] + np.arange(dim)] = local @ to_world.T + frame[:dim]
+        return int(chain.size)
 
     def _anchored_linear(self) -> tuple[dict[int, int], FloatArray, IntArray] | None:
         """The linear estimate moved rigidly onto the refined solution at their newest common pose.

@@ -11,7 +11,8 @@ import pytest
 import linear_slam_ros.evaluation.city  # noqa: F401 - registers synthetic:NAME
 from linear_slam_ros.core import least_squares
 from linear_slam_ros.core.errors import ConfigError, InvalidMapError, SolverError
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.geometry import points_from_frame, pose_size, poses_from_frame
+from linear_slam_ros.core.local_map import POSE, LocalMap, pose_key
 from linear_slam_ros.evaluation.nonlinear import refine
 from linear_slam_ros.evaluation.objective import MapObjective, chi2
 from linear_slam_ros.evaluation.runner import run_join
@@ -194,9 +195,10 @@ def test_new_variables_are_placed_against_the_held_solution(city: tuple[LocalMap
     """A batch the linear estimate does not cover is placed before its round: the absorbed variables stay
     where the refined solution has them (bit for bit), the new ones at the optimum of the batch's submaps
     alone (their gradient vanishes), so the round starts lower and reaches the same optimum in fewer steps."""
-    config = {"streaming_rtol": 0.0, "chi2_rtol": 1e-12}
-    chained, held = _chained_batch(city, RefinerConfig(place_steps=0, **config))
-    placed, held_too = _chained_batch(city, RefinerConfig(place_steps=10, place_rtol=0.0, **config))
+    chained, held = _chained_batch(city, RefinerConfig(place_steps=0, streaming_rtol=0.0, chi2_rtol=1e-12))
+    placed, held_too = _chained_batch(
+        city, RefinerConfig(place_steps=10, place_rtol=0.0, streaming_rtol=0.0, chi2_rtol=1e-12)
+    )
     np.testing.assert_array_equal(held, held_too)
     np.testing.assert_array_equal(placed.result(information=False).map.x[: held.size], held)
     batch = city[100:220]
@@ -228,3 +230,46 @@ def test_a_placement_that_fails_leaves_the_warm_start(city: tuple[LocalMap, ...]
     monkeypatch.setattr(least_squares, "gauss_newton_step", singular)
     assert refiner.absorb() == 120
     np.testing.assert_array_equal(refiner.result(information=False).map.x, chained.result(information=False).map.x)
+
+
+@pytest.mark.parametrize("spec", ["synthetic:city2d-300@3", "synthetic:garage3d-60@3", "synthetic:features2d-24@3"])
+def test_a_batch_is_taken_in_as_its_submaps_one_at_a_time(spec: str) -> None:
+    """One absorb of many submaps (2D and 3D poses, features) indexes the same variables, chains the same warm
+    start and builds the same objective as one absorb per submap."""
+    maps = read_dataset(spec).maps[:60]
+    one_by_one = OnlineRefiner(RefinerConfig(place_steps=0))
+    for seq, m in enumerate(maps, start=1):
+        one_by_one.submit(Submission(seq, m, 0.0))
+        assert one_by_one.absorb() == 1
+    batch = OnlineRefiner(RefinerConfig(place_steps=0))
+    for seq, m in enumerate(maps, start=1):
+        batch.submit(Submission(seq, m, 0.0))
+    assert batch.absorb() == len(maps)
+    a, b = one_by_one.result(), batch.result()
+    np.testing.assert_array_equal(a.map.ids, b.map.ids)
+    np.testing.assert_array_equal(a.map.kinds, b.map.kinds)
+    np.testing.assert_allclose(b.map.x, a.map.x, rtol=0, atol=1e-9)
+    assert abs(b.initial_chi2 - a.initial_chi2) <= 1e-9 * a.initial_chi2
+    info_a, info_b = a.map.info.toarray(), b.map.info.toarray()
+    np.testing.assert_allclose(info_b, info_a, rtol=0, atol=1e-9 * np.abs(info_a).max())
+    assert b.n_submaps == a.n_submaps == len(maps) and b.last_seq == len(maps)
+    np.testing.assert_allclose(b.map.x, _chained_by_hand(maps), rtol=0, atol=1e-9)
+
+
+def _chained_by_hand(maps: tuple[LocalMap, ...]) -> FloatArray:
+    """The chained warm start: each new variable from its submap's frame pose, with the geometry module."""
+    dim = maps[0].dim
+    origin_key = pose_key(maps[0].frame_id)
+    values: dict[int, FloatArray] = {}
+    for m in maps:
+        frame = np.zeros(pose_size(dim)) if pose_key(m.frame_id) == origin_key else values[pose_key(m.frame_id)]
+        for i, k in enumerate(m.keys.tolist()):
+            if k in values or k == origin_key:
+                continue
+            local = m.x[m.scalar_slice(i)]
+            if m.kinds[i] == POSE:
+                t, a = poses_from_frame(dim, frame[:dim], frame[dim:], local[:dim], local[dim:])
+                values[k] = np.concatenate([t, a])
+            else:
+                values[k] = points_from_frame(dim, frame[:dim], frame[dim:], local)
+    return np.concatenate(list(values.values()))

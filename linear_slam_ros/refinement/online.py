@@ -11,7 +11,9 @@ take in new submaps, publish, or stop:
 - :meth:`OnlineRefiner.absorb` takes the queued submaps in. The previous solution is kept (warm
   start); a variable it has not seen takes the newest linear estimate's value, moved rigidly so
   that the newest pose both share (the anchor) sits where the refined solution has it; a
-  variable the linear estimate lacks too is chained from its submap's frame pose. The objective
+  variable the linear estimate lacks too is chained from its submap's frame pose, and then, with
+  the absorbed variables held, a few Gauss-Newton steps over the batch's submaps alone place the
+  batch's new variables (``place_steps``: a chain over a long batch drifts). The objective
   is extended, not rebuilt: the variable layout only grows, so earlier submaps' index records
   stay valid.
 - :meth:`OnlineRefiner.iterate` takes one Gauss-Newton step (step halving, angles wrapped): the

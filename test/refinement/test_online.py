@@ -155,6 +155,18 @@ def test_a_submap_that_cannot_be_placed_is_left_out(city: tuple[LocalMap, ...]) 
     assert refiner.n_skipped == 1 and refiner.n_absorbed == 1
 
 
+def test_a_submap_of_another_dimension_is_left_out(city: tuple[LocalMap, ...], caplog: pytest.LogCaptureFixture) -> None:
+    garage = read_dataset("synthetic:garage3d-50@3").maps
+    refiner = OnlineRefiner()
+    refiner.submit(Submission(1, city[0], 0.0))
+    refiner.submit(Submission(2, garage[1], 0.0))
+    refiner.submit(Submission(3, city[1], 0.0))
+    with caplog.at_level("WARNING"):
+        assert refiner.absorb() == 2
+    assert refiner.n_skipped == 1 and refiner.n_absorbed == 2
+    assert "submap seq 2 left out" in caplog.text and "is 3D; the refiner's map is 2D" in caplog.text
+
+
 def test_an_extra_measurement_is_absorbed_but_not_counted_as_a_submap(city: tuple[LocalMap, ...]) -> None:
     refiner = OnlineRefiner()
     refiner.submit(Submission(1, city[0], 0.0))

@@ -374,6 +374,11 @@ class LocalMap(VariableLayout):
         object.__setattr__(self, "layout", StateLayout(self.dim, self.kinds))
         self.validate()
 
+    def __reduce__(self) -> tuple[Callable[..., LocalMap], tuple[object, ...]]:
+        """Pickle the fields only (another process: the refiner's): the layout and the cached lookups are
+        rebuilt when first asked for there, at half the cost of pickling them with the map."""
+        return _trusted_map, (self.dim, self.frame_id, self.end_id, self.ids, self.kinds, self.x, self.info, self.name)
+
     @classmethod
     def trusted(
         cls,
@@ -516,6 +521,14 @@ class LocalMap(VariableLayout):
         info = self.info
         info_bytes = info.nbytes if isinstance(info, np.ndarray) else info.data.nbytes + info.indices.nbytes + info.indptr.nbytes
         return int(self.x.nbytes + self.ids.nbytes + self.kinds.nbytes + info_bytes)
+
+
+def _trusted_map(
+    dim: int, frame_id: int, end_id: int | None, ids: IntArray, kinds: npt.NDArray[np.int8], x: FloatArray,
+    info: InfoMatrix, name: str,
+) -> LocalMap:
+    """Unpickle a :class:`LocalMap` (:meth:`LocalMap.__reduce__`): it was valid when pickled."""
+    return LocalMap.trusted(dim, frame_id, end_id, ids, kinds, x, info, name)
 
 
 def _describe_key(key: int) -> str:

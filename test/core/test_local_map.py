@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pickle
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -107,3 +109,22 @@ def test_block_diagonal_equals_scipys_block_diag(rng):
         np.testing.assert_array_equal(got.data, want.data)
         assert got.indices.dtype == np.int32
     assert block_diagonal([]).shape == (0, 0)
+
+
+@pytest.mark.parametrize("info", [np.eye(5) * 10, sp.csr_matrix(np.eye(5) * 3)])
+@pytest.mark.parametrize("end_id", [1, None])
+def test_a_map_pickles_its_fields_and_not_its_caches(info, end_id):
+    """What goes to the refiner's process: the same map on the other side, its layout and lookups rebuilt there."""
+    m = _good(info=info, end_id=end_id)
+    assert m.key_set and m.offsets.size  # cached on this side
+    back = pickle.loads(pickle.dumps(m, protocol=pickle.HIGHEST_PROTOCOL))
+    assert isinstance(back, LocalMap) and back is not m
+    assert (back.dim, back.frame_id, back.end_id, back.name) == (m.dim, m.frame_id, m.end_id, m.name)
+    for field in ("ids", "kinds", "x"):
+        np.testing.assert_array_equal(getattr(back, field), getattr(m, field))
+        assert getattr(back, field).dtype == getattr(m, field).dtype
+    assert sp.issparse(back.info) == sp.issparse(m.info)
+    np.testing.assert_array_equal(sp.csr_matrix(back.info).toarray(), sp.csr_matrix(m.info).toarray())
+    assert "key_set" not in vars(back) and back.layout is not m.layout
+    assert back.key_set == m.key_set
+    np.testing.assert_array_equal(back.offsets, m.offsets)

@@ -47,6 +47,7 @@ from linear_slam_ros.core.geometry import (
     poses_from_frame,
     poses_to_frame,
     rot3,
+    single_rotation,
     wrap_angle,
 )
 from linear_slam_ros.core.local_map import (
@@ -215,16 +216,6 @@ class _Records:
     pose_cols: list[IntArray] = field(default_factory=list)
     pose_ref: list[IntArray] = field(default_factory=list)
     weights: list[InfoMatrix] = field(default_factory=list)  # the absorbed ones: one CSR matrix
-
-
-def _frame_rotation_t(dim: int, angles: FloatArray) -> FloatArray:
-    """``R^T`` of one pose's angles (``(a,)``): what takes coordinates in its frame to the world's
-    (:func:`~linear_slam_ros.core.geometry.points_from_frame`), built without the stacking that
-    :func:`~linear_slam_ros.core.geometry.rotation` needs for many poses at once."""
-    if dim == 2:
-        c, s = math.cos(angles[0]), math.sin(angles[0])
-        return np.array([[c, -s], [s, c]])
-    return rot3(angles).T
 
 
 def _cat(parts: list[npt.NDArray[np.generic]], dtype: type) -> npt.NDArray[np.generic]:
@@ -571,18 +562,18 @@ class OnlineRefiner:
         for group in groups:  # a submap at a time: its frame pose may have been chained by the one before
             ref = refs[int(submap[group[0]])]
             frame = np.zeros(p) if ref < 0 else buf[ref : ref + p].copy()
-            to_world = _frame_rotation_t(dim, frame[dim:])
+            rot, _ = single_rotation(dim, frame[dim:])  # local coordinates to the world's: R^T p + t, as rows p R + t
             poses, points = group[pose[group]], group[~pose[group]]
             if poses.size:
                 local = z[row[poses, None] + np.arange(p)]
-                buf[start[poses, None] + np.arange(dim)] = local[:, :dim] @ to_world.T + frame[:dim]
+                buf[start[poses, None] + np.arange(dim)] = local[:, :dim] @ rot + frame[:dim]
                 if dim == 2:
                     buf[start[poses] + dim] = wrap_angle(local[:, dim] + frame[dim])
                 else:
-                    buf[start[poses, None] + np.arange(dim, p)] = angles3(rot3(local[:, dim:]) @ to_world.T)
+                    buf[start[poses, None] + np.arange(dim, p)] = angles3(rot3(local[:, dim:]) @ rot)
             if points.size:
                 local = z[row[points, None] + np.arange(dim)]
-                buf[start[points, None] + np.arange(dim)] = local @ to_world.T + frame[:dim]
+                buf[start[points, None] + np.arange(dim)] = local @ rot + frame[:dim]
         return int(chain.size)
 
     def _anchored_linear(self) -> tuple[dict[int, int], FloatArray, IntArray] | None:

@@ -32,6 +32,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -218,6 +219,10 @@ class _Records:
     weights: list[InfoMatrix] = field(default_factory=list)  # the absorbed ones: one CSR matrix
 
 
+_RECORDS = ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref")
+"""The index records of :class:`MapObjective` (one array each) the refiner keeps and extends."""
+
+
 def _cat(parts: list[npt.NDArray[np.generic]], dtype: type) -> npt.NDArray[np.generic]:
     return np.concatenate(parts).astype(dtype, copy=False) if parts else np.zeros(0, dtype)
 
@@ -360,7 +365,7 @@ class OnlineRefiner:
         self._angles = angle_mask(self._dim, np.asarray(self._kinds, dtype=np.int8))
         batch_records = {
             name: _cat(getattr(rec, name), bool if name == "angle_rows" else (float if name == "z" else np.int64))
-            for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref")
+            for name in _RECORDS
         }
         for name, value in batch_records.items():
             getattr(self._records, name).append(value)
@@ -379,7 +384,7 @@ class OnlineRefiner:
         return len(taken)
 
     def _place_new(
-        self, batch: dict[str, npt.NDArray[np.generic]], weight: sp.csr_matrix, n_old: int, row0: int
+        self, batch: dict[str, npt.NDArray[Any]], weight: sp.csr_matrix, n_old: int, row0: int
     ) -> None:
         """Move the variables new in this batch to the optimum of the batch's submaps alone, the others held.
 
@@ -396,15 +401,7 @@ class OnlineRefiner:
             n_old: state scalars absorbed before the batch (held); the rest are new.
             row0: the batch's first row in the whole objective.
         """
-        assert self._origin is not None
-        int_rows = lambda name: batch[name].astype(np.int64, copy=False)  # noqa: E731
-        objective = MapObjective(
-            dim=self._dim, n_state=self._n_state, origin_id=self._origin,
-            z=batch["z"].astype(np.float64, copy=False), weight=weight,
-            angle_rows=batch["angle_rows"].astype(bool, copy=False),
-            feat_rows=int_rows("feat_rows") - row0, feat_cols=int_rows("feat_cols"), feat_ref=int_rows("feat_ref"),
-            pose_rows=int_rows("pose_rows") - row0, pose_cols=int_rows("pose_cols"), pose_ref=int_rows("pose_ref"),
-        )
+        objective = self._make_objective(batch, weight, row0)
         held = self._x[:n_old]
         angles = self._angles[n_old:]
 
@@ -615,18 +612,26 @@ class OnlineRefiner:
             moved[feat_idx] = points_from_frame(dim, a_ref[:dim], a_ref[dim:], rel_f.points)
         return lookup, moved, offsets
 
+    def _make_objective(
+        self, records: dict[str, npt.NDArray[Any]], weight: sp.csr_matrix, row0: int = 0
+    ) -> MapObjective:
+        """The objective of these index records (:data:`_RECORDS`; rows from ``row0``) over the whole state."""
+        assert self._origin is not None
+        r = records
+        return MapObjective(
+            dim=self._dim, n_state=self._n_state, origin_id=self._origin, z=r["z"], weight=weight,
+            angle_rows=r["angle_rows"], feat_rows=r["feat_rows"] - row0 if row0 else r["feat_rows"],
+            feat_cols=r["feat_cols"], feat_ref=r["feat_ref"],
+            pose_rows=r["pose_rows"] - row0 if row0 else r["pose_rows"], pose_cols=r["pose_cols"], pose_ref=r["pose_ref"],
+        )
+
     def _build_objective(self) -> None:
         rec = self._records
-        assert self._origin is not None
-        self._objective = MapObjective(
-            dim=self._dim, n_state=self._n_state, origin_id=self._origin, z=np.concatenate(rec.z),
-            weight=to_csr(rec.weights[0]), angle_rows=np.concatenate(rec.angle_rows),
-            feat_rows=np.concatenate(rec.feat_rows), feat_cols=np.concatenate(rec.feat_cols),
-            feat_ref=np.concatenate(rec.feat_ref), pose_rows=np.concatenate(rec.pose_rows),
-            pose_cols=np.concatenate(rec.pose_cols), pose_ref=np.concatenate(rec.pose_ref),
+        self._objective = self._make_objective(
+            {name: np.concatenate(getattr(rec, name)) for name in _RECORDS}, to_csr(rec.weights[0])
         )
         # one array per record kind from now on: the next absorb appends to it
-        for name in ("z", "angle_rows", "feat_rows", "feat_cols", "feat_ref", "pose_rows", "pose_cols", "pose_ref"):
+        for name in _RECORDS:
             setattr(rec, name, [getattr(self._objective, name)])
         self._r, self._jac = self._residuals(self._x)
         self.chi2 = self.initial_chi2 = float(self._r @ (self._objective.weight @ self._r))

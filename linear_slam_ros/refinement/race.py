@@ -11,8 +11,11 @@ Per stream, one submap at a time, in one process each:
   :class:`~linear_slam_ros.refinement.worker.RefineWorker` process; as the node's output
   thread does, a thread of its own computes the linear global map (``end_pose`` frame, the
   node's default) at most every 0.5 s and at most half of the time while the joins go on (its
-  estimate goes to the refiner), and once after the last submap. CPU: this process's
-  (joining, linear outputs, sending) plus the refiner process's.
+  estimate goes to the refiner), and once after the last submap. CPU, each thread's own
+  (``time.thread_time``): the joins (the joining thread inside ``offer``), the linear outputs
+  (that thread, and the final output), the rest of this process (the queue's feeder thread,
+  which pickles the submaps sent to the refiner, and the BLAS libraries' own threads, which
+  take part in the joins' and outputs' products) and the refiner process's.
 - **iSAM2** (gtsam, default ``ISAM2Params``): one ``update`` per submap with that submap's
   factors. Conversion: each local map's pose block ``i`` (its estimate of pose ``i`` in the frame
   of its frame pose ``f``, and the diagonal block of its information) becomes
@@ -27,7 +30,10 @@ Per stream, one submap at a time, in one process each:
 
 Scored with the project's own χ² (:func:`linear_slam_ros.evaluation.objective.chi2`); the optimum
 is the converged refined map's χ². Targets (issue 13): the refined map within 0.1% of the optimum
-≤ 2 s after the last submap; CPU of ours ≤ 1/3 of iSAM2's.
+≤ 2 s after the last submap; the CPU of joining plus refinement ≤ 1/3 of iSAM2's (``cpu_join_refine_s``:
+the joins, the rest of this process and the refiner process; iSAM2's figure is its updates, with no
+full estimate computed after them). The linear outputs, which a node publishes whether it refines or not, are
+reported apart and in ``cpu_total_s``, which is checked against the same third as well.
 """
 
 from __future__ import annotations
@@ -78,23 +84,26 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
     steps: list[float] = []
     outputs = _Outputs(joiner, worker)
     c0 = time.process_time()
+    cpu_join = 0.0
     last_arrival = 0.0
     outputs.start()
     try:
         for seq, m in enumerate(maps, start=1):
             arrived = time.monotonic()
-            t0 = time.perf_counter()
+            t0, u0 = time.perf_counter(), time.thread_time()
             joined = joiner.offer(m, seq)
+            cpu_join += time.thread_time() - u0
             steps.append(time.perf_counter() - t0)
             if joined:
                 worker.submit(Submission(seq, m, arrived))
             last_arrival = arrived
     finally:
         outputs.stop()
-    t_join_end = time.perf_counter()
+    t_join_end, u_join_end = time.perf_counter(), time.thread_time()
     linear_map = _linear_map(joiner.state)
     worker.linear(LinearEstimate.of_map(linear_map, joiner.state.n_joined))
     final_linear_seconds = time.perf_counter() - t_join_end
+    cpu_outputs = outputs.cpu_seconds + time.thread_time() - u_join_end
     output_seconds = outputs.seconds
     cpu_parent = time.process_time() - c0
     publications: list[Published] = []
@@ -126,7 +135,11 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
         **_latency("join", steps),
         "linear_output_seconds": output_seconds + final_linear_seconds,
         "cpu_parent_s": cpu_parent,
+        "cpu_join_s": cpu_join,
+        "cpu_outputs_s": cpu_outputs,
+        "cpu_rest_s": cpu_parent - cpu_join - cpu_outputs,
         "cpu_refiner_s": child_cpu,
+        "cpu_join_refine_s": cpu_parent - cpu_outputs + child_cpu,
         "cpu_total_s": cpu_parent + child_cpu,
         "chi2_linear": chi2(linear_map, maps),
         "publications_after_last": [
@@ -152,6 +165,7 @@ class _Outputs(threading.Thread):
         self._worker = worker
         self._done = threading.Event()
         self.seconds = 0.0
+        self.cpu_seconds = 0.0  # this thread's CPU time
         self.error: BaseException | None = None
 
     def run(self) -> None:
@@ -165,10 +179,11 @@ class _Outputs(threading.Thread):
             state = self._joiner.state
             if state.n_joined == 0:
                 continue
-            t0 = time.perf_counter()
+            t0, u0 = time.perf_counter(), time.thread_time()
             self._worker.linear(LinearEstimate.of_map(_linear_map(state), state.n_joined))
             cost = time.perf_counter() - t0
             self.seconds += cost
+            self.cpu_seconds += time.thread_time() - u0
             if self._done.wait(max(0.0, cost / OUTPUT_DUTY - cost - OUTPUT_PERIOD_S)):
                 return
 
@@ -303,10 +318,16 @@ def race_stream(name: str, source: str, config: RefinerConfig | None = None, isa
     isam = entry["isam2"]
     entry["checks"] = {
         "refined_lag": ours["refined_lag_s"] <= TARGETS["refined_lag_s"],
-        "cpu_third_of_isam2": None if isam is None else ours["cpu_total_s"] <= TARGETS["cpu_ratio"] * isam["cpu_total_s"],
+        "cpu_third_of_isam2": _within_third(ours["cpu_join_refine_s"], isam),
+        "cpu_third_of_isam2_with_outputs": _within_third(ours["cpu_total_s"], isam),
     }
     print(json.dumps(entry, indent=1, default=str), file=sys.stderr, flush=True)
     return entry
+
+
+def _within_third(ours_cpu_s: float, isam: dict[str, Any] | None) -> bool | None:
+    """Whether ``ours_cpu_s`` is within :data:`TARGETS`' fraction of iSAM2's CPU (``None``: no iSAM2 run)."""
+    return None if isam is None else ours_cpu_s <= TARGETS["cpu_ratio"] * isam["cpu_total_s"]
 
 
 def _read(source: str) -> Sequence[LocalMap]:
@@ -320,8 +341,9 @@ def _read(source: str) -> Sequence[LocalMap]:
 def to_markdown(entries: list[dict[str, Any]]) -> str:
     """The race table and the missed targets."""
     head = (
-        "| stream | submaps | ours join p50 / p99 / max ms | ours CPU s (join+outputs / refiner) | χ² linear / refined (optimum) "
-        "| refined ≤0.1% after s | iSAM2 update p50 / p99 / max ms | iSAM2 CPU s | iSAM2 χ² | CPU ours / iSAM2 |\n"
+        "| stream | submaps | ours join p50 / p99 / max ms | ours CPU s: join + rest + refiner (+ outputs) "
+        "| χ² linear / refined (optimum) | refined ≤0.1% after s | iSAM2 update p50 / p99 / max ms | iSAM2 CPU s "
+        "| iSAM2 χ² | CPU ours / iSAM2 (with outputs) |\n"
         "|---|---|---|---|---|---|---|---|---|---|"
     )
     rows, missed = [], []
@@ -329,11 +351,12 @@ def to_markdown(entries: list[dict[str, Any]]) -> str:
         o, i = e["ours"], e["isam2"]
         isam_cols = "– | – | – | –" if i is None else (
             f"{i['update_p50_ms']:.2f} / {i['update_p99_ms']:.1f} / {i['update_max_ms']:.0f} | {i['cpu_total_s']:.2f} "
-            f"| {i['chi2']:.2f} | {o['cpu_total_s'] / i['cpu_total_s']:.2f}"
+            f"| {i['chi2']:.2f} | {o['cpu_join_refine_s'] / i['cpu_total_s']:.2f} ({o['cpu_total_s'] / i['cpu_total_s']:.2f})"
         )
         rows.append(
             f"| {e['stream']} | {o['n_submaps']} | {o['join_p50_ms']:.2f} / {o['join_p99_ms']:.1f} / {o['join_max_ms']:.0f} "
-            f"| {o['cpu_total_s']:.2f} ({o['cpu_parent_s']:.2f} / {o['cpu_refiner_s']:.2f}) "
+            f"| {o['cpu_join_s']:.2f} + {o['cpu_rest_s']:.2f} + {o['cpu_refiner_s']:.2f} = {o['cpu_join_refine_s']:.2f} "
+            f"(+ {o['cpu_outputs_s']:.2f} = {o['cpu_total_s']:.2f}) "
             f"| {o['chi2_linear']:.2f} / {o['chi2_refined']:.2f} ({e['optimum_chi2']:.2f}) | {o['refined_lag_s']:.2f} "
             f"| {isam_cols} |"
         )

@@ -23,6 +23,8 @@ where the ``long`` one succeeds (the factor's entries must fit too): it is then 
 
 Every entry point reads one triangle of a symmetric matrix, the same way: the upper one of CSC
 input, and of a CSR matrix the CSC arrays of its transpose (its lower one), without a copy.
+
+CHOLMOD is loaded with OpenMP limited to one thread (:data:`OPENMP_THREAD_LIMIT`).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import ctypes
 import ctypes.util
 import functools
 import logging
+import os
 import threading
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
@@ -130,15 +133,36 @@ def _bind(lib: ctypes.CDLL, prefix: str, itype: int, index: type[np.integer[Any]
     return _Api(itype, index, **functions)
 
 
+OPENMP_THREAD_LIMIT = "1"
+"""``OMP_THREAD_LIMIT`` while CHOLMOD loads, unless the environment sets one (then that one holds).
+
+The system CHOLMOD (SuiteSparse 5, ``libcholmod.so.3``) runs loops of its supernodal factorisation
+on a team of 4 OpenMP threads whatever ``OMP_NUM_THREADS`` says (a ``num_threads`` clause fixed when
+it was built); only ``OMP_THREAD_LIMIT`` caps the team, and libgomp reads it once, when it loads,
+which is when this module loads CHOLMOD. The loops copy and clear, they do not sum: the factor is the
+same bit for bit with one thread. On the 2-core target the three extra threads cost more than they
+give (README, "CHOLMOD on one OpenMP thread"): online D&C of sphere2500, offline, 3.8 against 3.2 s
+of CPU and 3.6 against 3.2 s of wall time. The variable is set for the load only, so programs this
+process starts do not inherit it (the reference program is given the same limit explicitly,
+:func:`~linear_slam_ros.evaluation.reference.run_program`). Where libgomp was loaded before (by
+another library), the limit does not apply; nothing else changes."""
+
+
 def _load() -> tuple[ctypes.CDLL, _Api, _Api] | None:
     name = ctypes.util.find_library("cholmod")
     if name is None:
         return None
+    limit_set_here = "OMP_THREAD_LIMIT" not in os.environ
+    if limit_set_here:
+        os.environ["OMP_THREAD_LIMIT"] = OPENMP_THREAD_LIMIT
     try:
-        lib = ctypes.CDLL(name)
+        lib = ctypes.CDLL(name)  # loads libgomp, which reads OMP_THREAD_LIMIT now
         return lib, _bind(lib, "cholmod_", _INT, np.int32), _bind(lib, "cholmod_l_", _LONG, np.int64)
     except (OSError, AttributeError):  # pragma: no cover - a broken installation
         return None
+    finally:
+        if limit_set_here:
+            del os.environ["OMP_THREAD_LIMIT"]
 
 
 _LOADED = _load()

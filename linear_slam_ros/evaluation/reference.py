@@ -16,6 +16,8 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+from linear_slam_ros.core.cholmod import OPENMP_THREAD_LIMIT
+
 PROGRAM_NAME = "LinearSLAM"
 """File name of the program, in the ``reference`` folder beside the datasets folder."""
 
@@ -57,6 +59,10 @@ def run_program(
 ) -> ProgramRun:
     """Run the program on a folder of local maps with one BLAS thread; return its ``Used Time``.
 
+    OpenMP is limited as the project's CHOLMOD is (:data:`~linear_slam_ros.core.cholmod.OPENMP_THREAD_LIMIT`,
+    unless the environment sets ``OMP_THREAD_LIMIT``): both link the same ``libcholmod``, whose
+    supernodal loops would otherwise run on 4 threads, all counted in the program's ``Used Time``.
+
     Args:
         program: the executable.
         dataset_dir: folder of ``localmap_<i>.txt``.
@@ -70,7 +76,8 @@ def run_program(
     """
     if method not in PROGRAM_METHODS:
         raise ValueError(f"the reference program has no method {method!r} (it has {sorted(PROGRAM_METHODS)})")
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    # one BLAS thread, and OpenMP's limit as the project's CHOLMOD has it (the same libcholmod: core/cholmod.py)
+    env = {"OMP_THREAD_LIMIT": OPENMP_THREAD_LIMIT, **os.environ, "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryDirectory(prefix="linear_slam_reference_") as tmp:
         out = Path(tmp)
         cmd = [

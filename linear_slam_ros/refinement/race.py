@@ -55,6 +55,7 @@ import numpy as np
 
 from linear_slam_ros.core.geometry import angles3
 from linear_slam_ros.core.local_map import POSE, LocalMap
+from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, set_blas_threads
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.joiner.config import OutputFrame
@@ -80,6 +81,7 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
     # still counts in cpu_refiner_s)
     if not worker.wait_ready(120.0):
         raise RuntimeError("the refiner process did not start within 120 s")
+    set_blas_threads(SHARED_MACHINE_BLAS_THREADS)  # as the node
     joiner = Joiner(JoinMethod.ONLINE_DC)
     steps: list[float] = []
     outputs = _Outputs(joiner, worker)

@@ -38,7 +38,7 @@ from visualization_msgs.msg import MarkerArray
 from linear_slam_ros.core.errors import ConfigError, LinearSlamError, MessageError
 from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import LocalMap
-from linear_slam_ros.core.runtime import release_memory, set_blas_threads, tune_allocator
+from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.core.timing import latency, peak_rss_mb
 from linear_slam_ros.io.results import write_map, write_tum_stamped
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
@@ -136,7 +136,7 @@ class JoinerNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         strategy = get_strategy(config.mode, config.map_type)
         tune_allocator(strategy.mmap_threshold)
-        set_blas_threads(strategy.blas_threads)
+        set_blas_threads(SHARED_MACHINE_BLAS_THREADS)  # whatever the mode
         self._log_handler = _RosLogHandler(self)
         core_logger = logging.getLogger("linear_slam_ros")
         core_logger.addHandler(self._log_handler)

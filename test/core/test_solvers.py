@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from linear_slam_ros.core import cholmod
 from linear_slam_ros.core.errors import SolverError
 from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd
 from support import solve_spd
@@ -251,3 +257,35 @@ def test_a_factor_without_the_library_says_so_and_is_collected_quietly(monkeypat
     with pytest.raises(SolverError, match=r"CHOLMOD \(libcholmod\) is not installed"):
         cholmod.Factor(sp.eye(3, format="csr"))
     gc.collect()
+
+
+_OPENMP_PROBE = """
+import os
+import numpy as np
+import scipy.sparse as sp
+from linear_slam_ros.core import cholmod
+n = 100  # a 100 x 100 grid: supernodes large enough for CHOLMOD's parallel loops
+grid = sp.diags([-1.0, 4.0, -1.0], [-1, 0, 1], shape=(n, n))
+lap = (sp.kron(sp.identity(n), grid) + sp.kron(sp.diags([-1.0, -1.0], [-1, 1], shape=(n, n)), sp.identity(n))).tocsr()
+x = cholmod.solve_spd(lap, np.ones(n * n))
+assert np.abs(lap @ x - 1.0).max() < 1e-9
+print(os.environ.get("OMP_THREAD_LIMIT", "unset"), len(os.listdir("/proc/self/task")))
+"""
+
+
+def _openmp_probe(limit: str | None) -> list[str]:
+    """Run a supernodal factorisation in a fresh process; return its ``OMP_THREAD_LIMIT`` and thread count."""
+    env = {k: v for k, v in os.environ.items() if k != "OMP_THREAD_LIMIT"}
+    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    if limit is not None:
+        env["OMP_THREAD_LIMIT"] = limit
+    done = subprocess.run([sys.executable, "-c", _OPENMP_PROBE], env=env, capture_output=True, text=True, timeout=120, check=True)
+    return done.stdout.split()
+
+
+@pytest.mark.skipif(not cholmod.available() or not sys.platform.startswith("linux"), reason="libcholmod, /proc")
+def test_cholmod_loads_with_one_openmp_thread_and_leaves_the_environment_as_it_was():
+    # the library's loops run on a team of 4 whatever OMP_NUM_THREADS says: a limit the user sets is kept
+    assert _openmp_probe("4") == ["4", "4"]
+    # without one, the factorisation runs on the calling thread alone, and no limit is left for child processes
+    assert _openmp_probe(None) == ["unset", "1"]

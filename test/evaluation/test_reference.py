@@ -25,12 +25,15 @@ def test_find_program_only_when_an_executable_is_beside_the_datasets(tmp_path):
     assert find_program(datasets) == program.resolve()
 
 
-def test_run_program_passes_one_blas_thread_and_reads_used_time(tmp_path):
+def test_run_program_passes_one_blas_thread_and_reads_used_time(tmp_path, monkeypatch):
     program = tmp_path / "LinearSLAM"
-    program.write_text('#!/bin/sh\necho "args: $*"\necho "Used Time: ${OPENBLAS_NUM_THREADS}.25 sec"\n')
+    program.write_text('#!/bin/sh\necho "args: $*"\necho "Used Time: ${OPENBLAS_NUM_THREADS}.${OMP_THREAD_LIMIT}5 sec"\n')
     program.chmod(0o755)
+    monkeypatch.delenv("OMP_THREAD_LIMIT", raising=False)
     run = run_program(program, tmp_path, 3, "2DPF", "dc")
-    assert run.seconds == 1.25 and run.error is None
+    assert run.seconds == 1.15 and run.error is None  # one BLAS thread, OpenMP limited as the project's CHOLMOD
+    monkeypatch.setenv("OMP_THREAD_LIMIT", "3")
+    assert run_program(program, tmp_path, 3, "2DPF", "dc").seconds == 1.35  # a limit the user set holds for both
     program.write_text("#!/bin/sh\necho oops\nexit 3\n")
     failed = run_program(program, tmp_path, 3, "2DPF", "sequential")
     assert failed.seconds is None and "exit 3" in (failed.error or "")

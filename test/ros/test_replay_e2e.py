@@ -102,11 +102,11 @@ def test_feature_only_map_type_equals_offline_core(node, start_joiner, read_benc
     assert final.stats["n_joined"] == len(maps) and final.stats["n_rejected"] == 0
     from threadpoolctl import threadpool_limits
 
-    from linear_slam_ros.joiner.registry import get_strategy
+    from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS
 
     # the node's BLAS thread count: the feature-only chain carries rounding differences of the
     # BLAS schedule to ~1e-6 m (VicPark200), so the bit-level comparison uses the same one
-    with threadpool_limits(limits=get_strategy("sequential", "feature-only").blas_threads):
+    with threadpool_limits(limits=SHARED_MACHINE_BLAS_THREADS):
         offline = join_features_sequential([to_feature_only(g) for g in precondition(maps)])
     got = final.feature_map
     assert got.frame_ids == offline.frame_ids

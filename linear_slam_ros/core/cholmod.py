@@ -141,7 +141,7 @@ on a team of 4 OpenMP threads whatever ``OMP_NUM_THREADS`` says (a ``num_threads
 it was built); only ``OMP_THREAD_LIMIT`` caps the team, and libgomp reads it once, when it loads,
 which is when this module loads CHOLMOD. The loops copy and clear, they do not sum: the factor is the
 same bit for bit with one thread. On the 2-core target the three extra threads cost more than they
-give (README, "CHOLMOD on one OpenMP thread"): online D&C of sphere2500, offline, 3.8 against 3.2 s
+give (README, "One thread for BLAS and for CHOLMOD's OpenMP"): online D&C of sphere2500, offline, 3.8 against 3.2 s
 of CPU and 3.6 against 3.2 s of wall time. The variable is set for the load only, so programs this
 process starts do not inherit it (the reference program is given the same limit explicitly,
 :func:`~linear_slam_ros.evaluation.reference.run_program`). Where libgomp was loaded before (by

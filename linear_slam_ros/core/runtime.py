@@ -4,7 +4,8 @@ Two settings were measured to matter on the 2-core target machine (README, "Perf
 
 * BLAS threads. numpy and scipy each bundle an OpenBLAS; both start a thread per core and
   oversubscribe the two cores. The exact sequential joiner, a string of rank-``c`` updates of a
-  dense matrix, runs twice as fast with one BLAS thread (VicPark200: 2.2 s -> 1.1 s).
+  dense matrix, runs twice as fast with one BLAS thread (VicPark200: 2.2 s -> 1.1 s). The node
+  runs every mode on one (:data:`SHARED_MACHINE_BLAS_THREADS`): a spinning helper holds a core.
 * glibc's dynamic mmap threshold. Each sequential step allocates a slightly larger matrix than
   the last; glibc then serves every one with a fresh ``mmap`` and pays page faults on all of
   it. A fixed, high threshold lets freed matrices be reused (VicPark200: 1.1 s -> 0.85 s).
@@ -33,15 +34,6 @@ logger = logging.getLogger(__name__)
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
-SHARED_MACHINE_BLAS_THREADS = 1
-"""BLAS threads of a joiner that runs beside other work (the node in every mode, the race's joiner as
-the node's). numpy's and scipy's OpenBLAS start a thread per core, and after each call a helper keeps
-spinning for the next one; a stream's joins and outputs call every few milliseconds, so it never sleeps
-and holds a core that the node's own threads (arrivals, outputs, background merges), the refiner and
-the front-end need. sphere2500 through the node (``demo``, three runs alternated, README "One thread
-for BLAS and for CHOLMOD's OpenMP"): the joiner's CPU 20.9, 18.5, 16.3 s with a thread per core
-against 12.9, 12.7, 14.1 s with one. Offline and alone on the machine, a second thread shortens some
-runs (``run_join`` keeps each strategy's own ``blas_threads``)."""
 MMAP_THRESHOLD_REUSE = 1 << 30
 """Bytes: glibc's mmap threshold for the exact sequential strategies (freed dense matrices reused)."""
 MMAP_THRESHOLD_RETURN = 4 << 20
@@ -73,6 +65,17 @@ def tune_allocator(threshold_bytes: int) -> bool:
         return False
     logger.debug("mallopt(M_MMAP_THRESHOLD, %d), mallopt(M_TRIM_THRESHOLD, %d) -> %s", threshold_bytes, trim_bytes, ok)
     return ok
+
+
+SHARED_MACHINE_BLAS_THREADS = 1
+"""BLAS threads of a joiner that runs beside other work (the node in every mode, the race's joiner as
+the node's). numpy's and scipy's OpenBLAS start a thread per core, and after each call a helper keeps
+spinning for the next one; a stream's joins and outputs call every few milliseconds, so it never sleeps
+and holds a core that the node's own threads (arrivals, outputs, background merges), the refiner and
+the front-end need. sphere2500 through the node (``demo``, three runs alternated, README "One thread
+for BLAS and for CHOLMOD's OpenMP"): the joiner's CPU 20.9, 18.5, 16.3 s with a thread per core
+against 12.9, 12.7, 14.1 s with one. Offline and alone on the machine, a second thread shortens some
+runs (``run_join`` keeps each strategy's own ``blas_threads``)."""
 
 
 def blas_threads(n_threads: int | None) -> AbstractContextManager[object]:

@@ -6,12 +6,15 @@ shows that an uninterrupted node run equals it to 1e-9).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import time
+import uuid
 
 import numpy as np
 import pytest
+import rclpy
 from std_msgs.msg import Float64MultiArray
 
 from linear_slam_ros.evaluation.runner import run_join
@@ -23,6 +26,36 @@ from ros_support import call_trigger, global_map_subscription, wait_for_global_m
 from ros_support import dataset_bag as _bag
 
 KILLS = 10
+
+
+@contextlib.contextmanager
+def _fresh_node():
+    """A node of a DDS participant of its own, for one joiner's lifetime (killed or not).
+
+    The test once used one long-lived node for all eleven joiners it starts and kills -9; the last
+    joiner then sometimes received nothing (discovered, its subscription matched, no sample
+    acknowledged within 60 s, no map within 300 s: seen in a fresh-clone run, a full local run and,
+    on UDP only, one of two runs of this test alone; the joiner's own log showed nothing received).
+    The cause was not pinned down; the suspect is the long-lived participant's state about the
+    killed ones (a killed participant announces nothing, and its proxy stays until its lease ends),
+    which a participant that never knew them cannot have. On UDP only (loopback:
+    ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST), as are the joiners: a joiner killed -9 leaves no
+    shared-memory segment behind.
+    """
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    n = rclpy.create_node(f"test_{uuid.uuid4().hex[:8]}", context=context)
+    try:
+        yield n
+    finally:
+        n.destroy_node()
+        rclpy.try_shutdown(context=context)
+
+
+@pytest.fixture
+def udp_only(rclpy_session, monkeypatch):
+    """Fast DDS on UDP only for the nodes made and the joiners started in the test (read at participant creation)."""
+    monkeypatch.setenv("FASTDDS_BUILTIN_TRANSPORTS", "UDPv4")
 
 
 def _assert_equals_offline(final, maps, mode):
@@ -63,7 +96,7 @@ def _publish_then_kill(node, joiner, records, rate_factor, instant):
         pytest.param("Intel", "online-dc", 40.0, id="Intel"),
     ],
 )
-def test_kill_9_at_random_instants_loses_nothing(name, mode, rate_factor, node, start_joiner, read_benchmark, tmp_path):
+def test_kill_9_at_random_instants_loses_nothing(name, mode, rate_factor, udp_only, start_joiner, read_benchmark, tmp_path):
     maps = read_benchmark(name).maps
     records = list(read_messages(_bag(name)))
     play_s = (records[-1].time_ns - records[0].time_ns) / 1e9 / rate_factor
@@ -73,7 +106,8 @@ def test_kill_9_at_random_instants_loses_nothing(name, mode, rate_factor, node, 
     resumed = []
     for k, instant in enumerate(rng.uniform(0.0, play_s, KILLS)):
         joiner = start_joiner(**params)
-        _publish_then_kill(node, joiner, records, rate_factor, instant)
+        with _fresh_node() as node:
+            _publish_then_kill(node, joiner, records, rate_factor, instant)
         assert joiner.process.returncode == -signal.SIGKILL, f"kill {k}: the joiner had already exited"
         output = joiner.stop()[1]
         if k > 0:  # every restart resumed what the killed node had (its log line says from where)
@@ -82,8 +116,8 @@ def test_kill_9_at_random_instants_loses_nothing(name, mode, rate_factor, node, 
             resumed.append(lines[0].split("resumed from ", 1)[1])
     print("\n".join(resumed))  # shown with -s: snapshots and journal records replayed at each restart
     joiner = start_joiner(**params)
-    with global_map_subscription(node, joiner.topic("global_map")) as latest:  # before the last map is published
-        joiner.play(node, records)
+    with _fresh_node() as node, global_map_subscription(node, joiner.topic("global_map")) as latest:
+        joiner.play(node, records)  # the subscription first: before the last map is published
         final, _ = wait_for_global_map(
             node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 300.0, joiner, latest=latest
         )

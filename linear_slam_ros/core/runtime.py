@@ -68,8 +68,8 @@ def tune_allocator(threshold_bytes: int) -> bool:
 
 
 SHARED_MACHINE_BLAS_THREADS = 1
-"""BLAS threads of a joiner that runs beside other work (the node in every mode, the race's joiner as
-the node's). numpy's and scipy's OpenBLAS start a thread per core, and after each call a helper keeps
+"""BLAS threads of a process that runs beside other work (the node in every mode, the race's joiner as
+the node's, the refiner process). numpy's and scipy's OpenBLAS start a thread per core, and after each call a helper keeps
 spinning for the next one; a stream's joins and outputs call every few milliseconds, so it never sleeps
 and holds a core that the node's own threads (arrivals, outputs, background merges), the refiner and
 the front-end need. sphere2500 through the node (``demo``, three runs alternated, README "One thread

@@ -130,9 +130,9 @@ def serve(
     ``ready`` (a ``multiprocessing`` event) is set once the sink is built: the child is up.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from linear_slam_ros.core.runtime import set_blas_threads
+    from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, set_blas_threads
 
-    set_blas_threads(1)  # the joiner has the other core
+    set_blas_threads(SHARED_MACHINE_BLAS_THREADS)  # the joiner has the other core
     try:
         os.nice(REFINER_NICE)  # joining first (REFINER_NICE)
     except OSError as exc:  # a platform or a limit that refuses it: the refiner runs at the node's priority

@@ -198,7 +198,7 @@ def upper_triplets(info: InfoMatrix) -> tuple[npt.NDArray[np.integer[Any]], npt.
 
     The same entries, in the same (row-major) order, as ``scipy.sparse.triu(info, format="coo")``,
     read from the CSR arrays without the full matrix's COO copy: a large map's triangle is made
-    in the output thread beside everything the node holds (README, "Peak memory").
+    in the output thread beside everything the node holds (docs/scale.md, "Peak memory").
     """
     csr = to_csr(info)
     rows = np.repeat(np.arange(csr.shape[0], dtype=csr.indices.dtype), np.diff(csr.indptr))

@@ -60,7 +60,7 @@ The node's background merges and its output thread (the stack's merge, the newes
 covariance) each factorise maps of up to the whole map's size; two at once hold two factors and
 workspaces (the final map of garage3d-5000: 132 MB above the matrix for one). On a 2-core machine
 whose other core takes the arrivals they share one core anyway, so a large factorisation waits
-for the one under way instead of running beside it (README, "The global map sent as serialised
+for the one under way instead of running beside it (docs/scale.md, "The global map sent as serialised
 bytes; one large factorisation at a time"). Smaller ones never wait, and neither do :class:`Factor`
 (the gate's, on the arrival path, which must not wait for a merge) nor :class:`ReusedAnalysis` (the
 refiner's, in a process of its own)."""
@@ -141,7 +141,7 @@ on a team of 4 OpenMP threads whatever ``OMP_NUM_THREADS`` says (a ``num_threads
 it was built); only ``OMP_THREAD_LIMIT`` caps the team, and libgomp reads it once, when it loads,
 which is when this module loads CHOLMOD. The loops copy and clear, they do not sum: the factor is the
 same bit for bit with one thread. On the 2-core target the three extra threads cost more than they
-give (README, "One thread for BLAS and for CHOLMOD's OpenMP"): online D&C of sphere2500, offline, 3.8 against 3.2 s
+give (docs/scale.md, "One thread for BLAS and for CHOLMOD's OpenMP"): online D&C of sphere2500, offline, 3.8 against 3.2 s
 of CPU and 3.6 against 3.2 s of wall time. The variable is set for the load only, so programs this
 process starts do not inherit it (the reference program is given the same limit explicitly,
 :func:`~linear_slam_ros.evaluation.reference.run_program`). Where libgomp was loaded before (by

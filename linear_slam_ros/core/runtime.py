@@ -1,6 +1,6 @@
 """Process-level tuning for the joiners, applied by the programs (CLI, node), never on import.
 
-Two settings were measured to matter on the 2-core target machine (README, "Performance"):
+Two settings were measured to matter on the 2-core target machine (docs/scale.md and docs/results.md):
 
 * BLAS threads. numpy and scipy each bundle an OpenBLAS; both start a thread per core and
   oversubscribe the two cores. The exact sequential joiner, a string of rank-``c`` updates of a
@@ -72,7 +72,7 @@ SHARED_MACHINE_BLAS_THREADS = 1
 the node's, the refiner process). numpy's and scipy's OpenBLAS start a thread per core, and after each call a helper keeps
 spinning for the next one; a stream's joins and outputs call every few milliseconds, so it never sleeps
 and holds a core that the node's own threads (arrivals, outputs, background merges), the refiner and
-the front-end need. sphere2500 through the node (``demo``, three runs alternated, README "One thread
+the front-end need. sphere2500 through the node (``demo``, three runs alternated, docs/scale.md, "One thread
 for BLAS and for CHOLMOD's OpenMP"): the joiner's CPU 20.9, 18.5, 16.3 s with a thread per core
 against 12.9, 12.7, 14.1 s with one. Offline and alone on the machine, a second thread shortens some
 runs (``run_join`` keeps each strategy's own ``blas_threads``)."""

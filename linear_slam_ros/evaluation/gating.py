@@ -64,7 +64,8 @@ DATASETS = ("VicPark_200_local_maps", "DLR_200_local_maps", "Intel", "manhattanO
 CLEAN_ONLY = ("8240_data_50_local_maps", "Simu_3D_870_Loop", "VicPark_6898_local_maps")
 """The other datasets of ``shared/datasets``: the clean check only (no corruption trials)."""
 PROBABILITY = 0.99999999
-"""Gate probability of the benchmark (and the documented recommendation): 1 - 1e-8, see the README's gating section and docs/gating.md."""
+"""Gate probability of the benchmark (and the documented recommendation): 1 - 1e-8, see the README's gating
+section and docs/gating.md."""
 PROBABILITIES = (0.9999, 0.999999, 0.99999999, 1.0 - 1e-12)
 
 

@@ -55,7 +55,7 @@ import numpy as np
 
 from linear_slam_ros.core.geometry import angles3
 from linear_slam_ros.core.local_map import POSE, LocalMap
-from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, set_blas_threads
+from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, blas_threads
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.joiner.config import OutputFrame
@@ -81,33 +81,33 @@ def run_ours(maps: Sequence[LocalMap], config: RefinerConfig | None = None, time
     # still counts in cpu_refiner_s)
     if not worker.wait_ready(120.0):
         raise RuntimeError("the refiner process did not start within 120 s")
-    set_blas_threads(SHARED_MACHINE_BLAS_THREADS)  # as the node
-    joiner = Joiner(JoinMethod.ONLINE_DC)
-    steps: list[float] = []
-    outputs = _Outputs(joiner, worker)
-    c0 = time.process_time()
-    cpu_join = 0.0
-    last_arrival = 0.0
-    outputs.start()
-    try:
-        for seq, m in enumerate(maps, start=1):
-            arrived = time.monotonic()
-            t0, u0 = time.perf_counter(), time.thread_time()
-            joined = joiner.offer(m, seq)
-            cpu_join += time.thread_time() - u0
-            steps.append(time.perf_counter() - t0)
-            if joined:
-                worker.submit(Submission(seq, m, arrived))
-            last_arrival = arrived
-    finally:
-        outputs.stop()
-    t_join_end, u_join_end = time.perf_counter(), time.thread_time()
-    linear_map = _linear_map(joiner.state)
-    worker.linear(LinearEstimate.of_map(linear_map, joiner.state.n_joined))
-    final_linear_seconds = time.perf_counter() - t_join_end
-    cpu_outputs = outputs.cpu_seconds + time.thread_time() - u_join_end
-    output_seconds = outputs.seconds
-    cpu_parent = time.process_time() - c0
+    with blas_threads(SHARED_MACHINE_BLAS_THREADS):  # as the node; the caller's setting back afterwards
+        joiner = Joiner(JoinMethod.ONLINE_DC)
+        steps: list[float] = []
+        outputs = _Outputs(joiner, worker)
+        c0 = time.process_time()
+        cpu_join = 0.0
+        last_arrival = 0.0
+        outputs.start()
+        try:
+            for seq, m in enumerate(maps, start=1):
+                arrived = time.monotonic()
+                t0, u0 = time.perf_counter(), time.thread_time()
+                joined = joiner.offer(m, seq)
+                cpu_join += time.thread_time() - u0
+                steps.append(time.perf_counter() - t0)
+                if joined:
+                    worker.submit(Submission(seq, m, arrived))
+                last_arrival = arrived
+        finally:
+            outputs.stop()
+        t_join_end, u_join_end = time.perf_counter(), time.thread_time()
+        linear_map = _linear_map(joiner.state)
+        worker.linear(LinearEstimate.of_map(linear_map, joiner.state.n_joined))
+        final_linear_seconds = time.perf_counter() - t_join_end
+        cpu_outputs = outputs.cpu_seconds + time.thread_time() - u_join_end
+        output_seconds = outputs.seconds
+        cpu_parent = time.process_time() - c0
     publications: list[Published] = []
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:

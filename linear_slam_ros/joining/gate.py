@@ -474,32 +474,72 @@ class EntryCovariance:
                                 m.x[m.scalar_index(var_idx)], info, "stack entry marginal")
 
 
+BIG_ENTRY_FRACTION = 1 / 16
+"""Stack entries of at least this fraction of the joined submaps are merged into one part by :func:`big_prefix`."""
+
+
+def big_prefix(counts: Sequence[int]) -> int:
+    """Return how many of the oldest stack entries :func:`online_dc_marginal_by_entries` merges into one part.
+
+    The oldest entries of at least :data:`BIG_ENTRY_FRACTION` of the joined submaps each (never the
+    top). That prefix changes only when an entry of that size forms (once every ``n / 16`` submaps
+    or more) or one falls below the share as the stream grows, so its merge and factorisation are
+    made rarely, and the variables those large entries share with one another leave the dense
+    algebra of every call (a looped stream revisits its old places: Intel's two oldest entries
+    share up to 192 poses, whose 576-scalar reductions each call inverted and joined densely; with
+    the prefix merged, the gate's marginals cost 4.6 instead of 44 s over the stream, docs/gating.md).
+    1/16 was chosen over 1/4, 1/8 and 1/32 (Intel: 13.4, 7.5 and 4.9 s; p99 of a call 74, 35 and
+    34 ms against 20) and 1/64 (sphere2500's first 1500 submaps: the median call a third lower, its
+    99th percentile twice as high). 0 or 1: nothing is merged.
+    """
+    total = sum(counts)
+    j = 0
+    while j < len(counts) - 1 and counts[j] >= BIG_ENTRY_FRACTION * total:
+        j += 1
+    return j
+
+
+Token = int | tuple[int, ...]
+
+
 @dataclass
 class EntryCache:
-    """The :class:`EntryCovariance` of each online D&C stack entry, for :func:`online_dc_marginal` (a cache only).
+    """The :class:`EntryCovariance` of each part of an online D&C stack, for :func:`online_dc_marginal` (a cache only).
 
-    Entries are keyed by identity and kept while they are on the newest stack asked about or the
-    one before (a benchmark's trials alternate between two states). Results never depend on it.
+    The parts are the merge of the stack's :func:`big_prefix` (when it has two entries or more,
+    merged by :attr:`prefixes`) and each entry after it. Parts are keyed by the identity of their
+    entries and kept while they are on the newest stack asked about or the one before (a
+    benchmark's trials alternate between two states). Results never depend on it.
     """
 
-    _held: dict[int, tuple[Entry, EntryCovariance]] = field(default_factory=dict)
-    _previous: frozenset[int] = frozenset()
+    _held: dict[Token, tuple[tuple[Entry, ...], EntryCovariance]] = field(default_factory=dict)
+    _previous: frozenset[Token] = frozenset()
     prefixes: PrefixCache = field(default_factory=PrefixCache)
 
-    def entries(self, stack: tuple[Entry, ...]) -> list[EntryCovariance]:
-        """Return the covariance holder of each entry of ``stack``, creating those not held yet."""
+    def entries(self, stack: tuple[Entry, ...], merged: int = 0) -> list[EntryCovariance]:
+        """Return the covariance holder of each part of ``stack``, creating those not held yet.
+
+        Args:
+            stack: the online D&C stack, oldest first.
+            merged: its oldest entries making up the first part, merged (0 or 1: one part per entry).
+        """
         tokens = [_entry_token(e) for e in stack]
+        parts: list[tuple[Token, tuple[Entry, ...]]] = [(t, (e,)) for t, e in zip(tokens, stack, strict=True)]
+        if merged >= 2:
+            parts = [(tuple(tokens[:merged]), tuple(stack[:merged])), *parts[merged:]]
         out = []
-        for token, entry in zip(tokens, stack, strict=True):
+        for token, entries in parts:
             held = self._held.get(token)
             if held is None:
-                held = (entry, EntryCovariance(_entry_map(entry)))
+                part = self.prefixes.merged(entries) if len(entries) > 1 else _entry_map(entries[0])
+                held = (entries, EntryCovariance(part))
                 self._held[token] = held
             out.append(held[1])
-        keep = self._previous | frozenset(tokens)
+        current = frozenset(t for t, _ in parts)
+        keep = self._previous | current
         for token in [t for t in self._held if t not in keep]:
             del self._held[token]
-        self._previous = frozenset(tokens)
+        self._previous = current
         return out
 
     def clear(self) -> None:
@@ -514,8 +554,10 @@ def online_dc_marginal_by_entries(
 ) -> Marginal | None:
     """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (no merge).
 
-    Each entry is reduced to the variables that matter: the requested ones, those it shares with
-    another entry, and its end pose (the seam of the next join); the small maps are joined oldest
+    The stack's :func:`big_prefix` (its oldest entries of at least a sixteenth of the stream each)
+    counts as one entry, merged (cached while those entries stay). Each entry is reduced to the
+    variables that matter: the requested ones, those it shares with another entry, and its end pose
+    (the seam of the next join); the small maps are joined oldest
     first at their seams, as the stack is merged; after each join, what no later entry holds (as a
     variable or as its frame) and nobody asked for is marginalised out, so the running map stays
     small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster, README). Exact for the same
@@ -531,7 +573,7 @@ def online_dc_marginal_by_entries(
     if not state.stack:
         return None
     cache = cache if cache is not None else EntryCache()
-    held = cache.entries(state.stack)
+    held = cache.entries(state.stack, big_prefix(state.counts))
     maps = [h.map for h in held]
     requested = set(np.asarray(keys).tolist())
     if len(maps) == 1:

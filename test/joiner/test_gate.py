@@ -243,6 +243,45 @@ def test_the_marginal_by_stack_entries_keeps_an_entry_frame_that_is_not_the_seam
     np.testing.assert_allclose(by_entries.cov, merged.cov, atol=1e-9 * np.abs(merged.cov).max())
 
 
+@pytest.mark.parametrize(
+    ("counts", "merged"),
+    [((), 0), ((1,), 0), ((2, 1), 1), ((4, 2, 1), 2), ((512, 256), 1), ((512, 128, 64, 32, 4, 2, 1), 3),
+     ((2048, 1024, 256, 128, 32, 16, 8, 2), 3), ((8, 8, 8), 2)],
+)
+def test_the_big_prefix_is_the_oldest_entries_of_a_sixteenth_of_the_stream_or_more_never_the_top(counts, merged):
+    from linear_slam_ros.joining.gate import big_prefix
+
+    assert big_prefix(counts) == merged
+
+
+def test_the_marginal_by_entries_merges_the_big_prefix_once_and_reuses_it(read_benchmark, monkeypatch):
+    """Intel at 743 submaps (entries of 512, 128, 64, 32, 4, 2, 1): the three oldest are one part,
+    merged and factorised once; the next submap's call (the same big entries) reuses both."""
+    import linear_slam_ros.joining.gate as gate_module
+    from linear_slam_ros.core.local_map import pose_key
+    from linear_slam_ros.joining.gate import EntryCache, online_dc_marginal_by_entries
+
+    maps = read_benchmark("Intel").maps
+    j = Joiner(JoinMethod.ONLINE_DC)
+    for seq, m in enumerate(maps[:743], start=1):
+        j.offer(m, seq)
+    assert j.state.joined.counts == (512, 128, 64, 32, 4, 2, 1)
+    sizes: list[int] = []
+    real = gate_module.spd_factor
+    monkeypatch.setattr(gate_module, "spd_factor", lambda info: sizes.append(info.shape[0]) or real(info))
+    cache = EntryCache()
+    keys = np.concatenate([maps[743].keys, [pose_key(maps[743].frame_id)]])
+    assert online_dc_marginal_by_entries(j.state.joined, keys, cache) is not None
+    assert len(cache.entries(j.state.joined.stack, 3)) == 5
+    merged_scalars = cache.entries(j.state.joined.stack, 3)[0].map.state_dim
+    assert merged_scalars > 3 * 512 and merged_scalars in sizes  # the three big entries as one map, factorised
+    j.offer(maps[743], 744)  # 744 = 512 + 128 + 64 + 32 + 8: the big entries stay
+    before = len(sizes)
+    keys = np.concatenate([maps[744].keys, [pose_key(maps[744].frame_id)]])
+    assert online_dc_marginal_by_entries(j.state.joined, keys, cache) is not None
+    assert merged_scalars not in sizes[before:]
+
+
 @pytest.mark.parametrize("n_joined", [640, 743])
 def test_both_fast_marginals_equal_the_marginal_of_the_merged_map(read_benchmark, monkeypatch, n_joined):
     """Intel at 640 submaps: the stack is [512, 128] and its top is in the frame of pose 576, which the

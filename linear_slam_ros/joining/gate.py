@@ -504,7 +504,7 @@ Token = int | tuple[int, ...]
 
 @dataclass
 class EntryCache:
-    """The :class:`EntryCovariance` of each part of an online D&C stack, for :func:`online_dc_marginal` (a cache only).
+    """The :class:`EntryCovariance` of each part of an online D&C stack, for :func:`online_dc_marginal_by_entries` (a cache only).
 
     The parts are the merge of the stack's :func:`big_prefix` (when it has two entries or more,
     merged by :attr:`prefixes`) and each entry after it. Parts are keyed by the identity of their
@@ -552,15 +552,15 @@ class EntryCache:
 def online_dc_marginal_by_entries(
     state: OnlineDCState, keys: IntArray, cache: EntryCache | None = None
 ) -> Marginal | None:
-    """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (no merge).
+    """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (the stack not merged).
 
     The stack's :func:`big_prefix` (its oldest entries of at least a sixteenth of the stream each)
     counts as one entry, merged (cached while those entries stay). Each entry is reduced to the
     variables that matter: the requested ones, those it shares with another entry, and its end pose
-    (the seam of the next join); the small maps are joined oldest
-    first at their seams, as the stack is merged; after each join, what no later entry holds (as a
+    (the seam of the next join); the small maps are joined oldest first at their seams, as the
+    stack is merged; after each join, what no later entry holds (as a
     variable or as its frame) and nobody asked for is marginalised out, so the running map stays
-    small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster, README). Exact for the same
+    small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster, docs/gating.md). Exact for the same
     reason as :func:`online_dc_marginal`. Each entry's information is factorised once while it is on the
     stack (:class:`EntryCovariance`): a call costs solves for variables not asked before and
     dense algebra on the kept ones. ``None`` when the map holds none of ``keys``. An entry left

@@ -282,6 +282,42 @@ def test_the_marginal_by_entries_merges_the_big_prefix_once_and_reuses_it(read_b
     assert merged_scalars not in sizes[before:]
 
 
+def test_the_marginal_by_entries_folds_no_pending_merge_and_equals_the_merged_maps(monkeypatch):
+    """Merges deferred and a few computed (the node's stack while its worker is busy): the marginal is
+    taken from the pending joins' inputs, so the calling thread makes none of the joins the worker is
+    making, and it equals the marginal of those parts joined in full."""
+    import linear_slam_ros.joining.gate as gate_module
+    from linear_slam_ros.core.local_map import pose_key
+    from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState, leaf_maps, online_dc_step, pending_joins
+    from linear_slam_ros.joining.gate import PrefixCache, computed_parts, online_dc_marginal_by_entries
+
+    rng = np.random.default_rng(5)
+    maps = noisy_local_maps(make_world(2, 80, 60, rng, loops=2.0), rng, steps_per_map=2)
+    state = OnlineDCState(defer_above=0)  # every merge deferred
+    for i, m in enumerate(maps[:-1]):
+        state = online_dc_step(state, m)
+        if i % 7 == 6:  # some land, as a worker's would
+            pending_joins(state.stack)[0].value()
+    pending = pending_joins(state.stack)
+    parts, counts = computed_parts(state.stack, state.counts)
+    assert pending and any(isinstance(p, Deferred) and p.done for p in parts)  # landed merges are parts whole
+    assert [id(gate_module._entry_map(p)) for p in parts] == [id(m) for m in leaf_maps(state.stack)]
+    assert sum(counts) == state.n_joined and len(parts) > len(state.stack)
+    keys = np.concatenate([maps[-1].keys, [pose_key(maps[-1].frame_id)]])
+    # the same parts joined one after the other, in full (a pending join's result, a tree of joins, differs
+    # from that by linearisation: 6e-5 relative on this noisy stream, as the fold of its inputs did before)
+    truth = Marginal.of_map(PrefixCache().merged(tuple(leaf_maps(state.stack))), keys)
+    folded: list[object] = []
+    real = gate_module._entry_map
+    monkeypatch.setattr(gate_module, "_entry_map",
+                        lambda e: (folded.append(e) if isinstance(e, Deferred) and not e.done else None) or real(e))
+    fast = online_dc_marginal_by_entries(state, keys)
+    assert not folded and not any(d.done for d in pending)
+    assert fast is not None and truth is not None and fast.keys.tolist() == truth.keys.tolist()
+    np.testing.assert_allclose(fast.x, truth.x, atol=1e-9)
+    np.testing.assert_allclose(fast.cov, truth.cov, atol=1e-9 * np.abs(truth.cov).max())
+
+
 @pytest.mark.parametrize("n_joined", [640, 743])
 def test_both_fast_marginals_equal_the_marginal_of_the_merged_map(read_benchmark, monkeypatch, n_joined):
     """Intel at 640 submaps: the stack is [512, 128] and its top is in the frame of pose 576, which the

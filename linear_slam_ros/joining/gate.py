@@ -588,17 +588,16 @@ def online_dc_marginal_by_entries(
     A deferred join not computed yet counts as its inputs (:func:`computed_parts`: no join is
     made here that a background worker is making). The stack's :func:`big_prefix` (its oldest
     entries of at least a sixteenth of the stream each) counts as one entry, merged (cached while
-    those entries stay). Each entry is reduced to the
-    variables that matter: the requested ones, those it shares with another entry, and its end pose
-    (the seam of the next join); the small maps are joined oldest first at their seams, as the
-    stack is merged; after each join, what no later entry holds (as a
-    variable or as its frame) and nobody asked for is marginalised out, so the running map stays
-    small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster, docs/gating.md). Exact for the same
-    reason as :func:`online_dc_marginal`. Each entry's information is factorised once while it is on the
-    stack (:class:`EntryCovariance`): a call costs solves for variables not asked before and
-    dense algebra on the kept ones. ``None`` when the map holds none of ``keys``. An entry left
-    with no variable (in its own end pose's frame, sharing nothing) falls back to
-    :func:`online_dc_marginal`.
+    those entries stay). Each entry is reduced to the variables that matter: the requested ones,
+    those it shares with another entry, and its end pose (the seam of the next join); the small
+    maps are joined oldest first at their seams, as the stack is merged; after each join, what no
+    later entry holds (as a variable or as its frame) and nobody asked for is marginalised out, so
+    the running map stays small (sphere2500 at 500 submaps: a call 2.4-3.5 times faster,
+    docs/gating.md). Exact for the same reason as :func:`online_dc_marginal`. Each entry's
+    information is factorised once while it is on the stack (:class:`EntryCovariance`): a call
+    costs solves for variables not asked before and dense algebra on the kept ones. ``None`` when
+    the map holds none of ``keys``. An entry left with no variable (in its own end pose's frame,
+    sharing nothing) falls back to :func:`online_dc_marginal`.
 
     Raises:
         SolverError: an information matrix is not positive definite.

@@ -205,24 +205,37 @@ def pending_joins(stack: Sequence[Entry]) -> list[Deferred]:
     return out
 
 
-def leaf_maps(stack: Sequence[Entry]) -> list[LocalMap]:
-    """Return maps that together make up ``stack``, in order, without computing any join.
+def leaf_entries(stack: Sequence[Entry], counts: Sequence[int]) -> tuple[tuple[Entry, ...], tuple[int, ...]]:
+    """Return entries that together make up ``stack``, in order, and their counts, without computing any join.
 
-    A computed entry is its map; a deferred one is replaced by its inputs, recursively. Every
-    map starts where the one before it ends (it is in, or holds, that end pose), as the stack's
-    entries do, so poses can be chained along them (:func:`~linear_slam_ros.joining.chain.chain_end_pose`).
+    A map or a computed deferred join stays as it is; a deferred join not computed yet is replaced
+    by its inputs, recursively, each holding half its submaps (the online stack joins entries of
+    equal count). Every entry starts where the one before it ends (it is in, or holds, that end
+    pose), as the stack's entries do.
     """
-    out: list[LocalMap] = []
-    for entry in stack:
-        if isinstance(entry, Deferred):
-            inputs = entry.inputs
-            if inputs is None:  # computed meanwhile
-                out.append(entry.value())
-            else:
-                out.extend(leaf_maps(inputs))
-        else:
-            out.append(entry)
-    return out
+    entries: list[Entry] = []
+    entry_counts: list[int] = []
+
+    def add(entry: Entry, count: int) -> None:
+        inputs = entry.inputs if isinstance(entry, Deferred) else None
+        if inputs is None:  # a map, or a join computed by now (its inputs are released then)
+            entries.append(entry)
+            entry_counts.append(count)
+            return
+        add(inputs[0], count // 2)
+        add(inputs[1], count - count // 2)
+
+    for entry, count in zip(stack, counts, strict=True):
+        add(entry, count)
+    return tuple(entries), tuple(entry_counts)
+
+
+def leaf_maps(stack: Sequence[Entry]) -> list[LocalMap]:
+    """Return maps that together make up ``stack``, in order, without computing any join (:func:`leaf_entries`).
+
+    Poses can be chained along them (:func:`~linear_slam_ros.joining.chain.chain_end_pose`).
+    """
+    return [resolve(entry) for entry in leaf_entries(stack, [0] * len(stack))[0]]
 
 
 Relative = tuple[int, FloatArray] | None

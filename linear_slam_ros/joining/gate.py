@@ -68,7 +68,7 @@ from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.geometry import wrap_angle
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, angle_mask, pose_key, to_dense, var_keys, var_sizes
 from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd, spd_factor
-from linear_slam_ros.joining.divide_conquer import Deferred, Entry, OnlineDCState, leaf_maps
+from linear_slam_ros.joining.divide_conquer import Deferred, Entry, OnlineDCState, leaf_entries, leaf_maps
 from linear_slam_ros.joining.pairwise import join_at_seam
 from linear_slam_ros.joining.sequential import CovarianceMap, _symmetrize_lower
 
@@ -499,37 +499,6 @@ def big_prefix(counts: Sequence[int]) -> int:
     return j
 
 
-def computed_parts(stack: Sequence[Entry], counts: Sequence[int]) -> tuple[tuple[Entry, ...], tuple[int, ...]]:
-    """Return the stack with each deferred join not computed yet replaced by its inputs (recursively), and their counts.
-
-    The parts make up the same map, in order, each starting where the one before ends (as
-    :func:`~linear_slam_ros.joining.divide_conquer.leaf_maps`), and none needs a join to be made:
-    the marginal is taken from them instead of folding a pending merge's inputs on the calling
-    thread, the join a background worker is making (in the node, every merge of more than 100
-    scalars is deferred). The inputs of a pending join were stack entries at the step before, so
-    their factorisations are mostly still in the :class:`EntryCache`. A deferred join's inputs
-    hold half its submaps each (the online stack joins entries of equal count). The marginal is
-    then that of the parts joined one after the other (before, each pending join's inputs were
-    folded into one map first); the pending join's own result, a tree of joins, differs from
-    either by linearisation only (6e-5 relative on a noisy synthetic stream, `test_gate.py`).
-    """
-    parts: list[Entry] = []
-    part_counts: list[int] = []
-
-    def add(entry: Entry, count: int) -> None:
-        inputs = entry.inputs if isinstance(entry, Deferred) else None
-        if inputs is None:  # a map, or a join computed by now (its inputs are released then)
-            parts.append(entry)
-            part_counts.append(count)
-            return
-        add(inputs[0], count // 2)
-        add(inputs[1], count - count // 2)
-
-    for entry, count in zip(stack, counts, strict=True):
-        add(entry, count)
-    return tuple(parts), tuple(part_counts)
-
-
 Token = int | tuple[int, ...]
 
 
@@ -585,8 +554,13 @@ def online_dc_marginal_by_entries(
 ) -> Marginal | None:
     """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (the stack not merged).
 
-    A deferred join not computed yet counts as its inputs (:func:`computed_parts`: no join is
-    made here that a background worker is making). The stack's :func:`big_prefix` (its oldest
+    A deferred join not computed yet counts as its inputs (:func:`~linear_slam_ros.joining.divide_conquer.leaf_entries`):
+    no join is made here that a background worker is making (in the node, every merge of more than
+    100 scalars is deferred), and those inputs, the stack's entries one step before, mostly still
+    have their factorisations in the cache. The marginal is then that of the parts joined one after
+    the other (before, each pending join's inputs were folded into one map first); the pending
+    join's own result, a tree of joins, differs from either by linearisation only (6e-5 relative on
+    a noisy synthetic stream, ``test_gate.py``). The stack's :func:`big_prefix` (its oldest
     entries of at least a sixteenth of the stream each) counts as one entry, merged (cached while
     those entries stay). Each entry is reduced to the variables that matter: the requested ones,
     those it shares with another entry, and its end pose (the seam of the next join); the small
@@ -605,7 +579,7 @@ def online_dc_marginal_by_entries(
     if not state.stack:
         return None
     cache = cache if cache is not None else EntryCache()
-    parts, part_counts = computed_parts(state.stack, state.counts)
+    parts, part_counts = leaf_entries(state.stack, state.counts)
     held = cache.entries(parts, big_prefix(part_counts))
     maps = [h.map for h in held]
     requested = set(np.asarray(keys).tolist())
@@ -936,6 +910,6 @@ def marginalise_out(submap: LocalMap, var_indices: Sequence[int]) -> LocalMap:
 __all__ = [
     "BIG_ENTRY_FRACTION", "EARLY_TAIL_MARGIN", "ENTRY_BLOCK_MAX", "FEATURE", "MAX_SPLIT_FRACTION", "POSE", "PRIOR_DOF",
     "TAIL_CONFIDENCE", "TAIL_QUANTILE", "EntryCache", "EntryCovariance", "GateResult", "Marginal", "MarginalFn",
-    "PrefixCache", "VarianceFactor", "VariableNis", "big_prefix", "chi2_threshold", "computed_parts", "gate_submap",
+    "PrefixCache", "VarianceFactor", "VariableNis", "big_prefix", "chi2_threshold", "gate_submap",
     "marginalise_out", "online_dc_holds", "online_dc_marginal", "online_dc_marginal_by_entries", "tail_order_statistic",
 ]

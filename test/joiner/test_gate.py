@@ -288,8 +288,15 @@ def test_the_marginal_by_entries_folds_no_pending_merge_and_equals_the_merged_ma
     making, and it equals the marginal of those parts joined in full."""
     import linear_slam_ros.joining.gate as gate_module
     from linear_slam_ros.core.local_map import pose_key
-    from linear_slam_ros.joining.divide_conquer import Deferred, OnlineDCState, leaf_maps, online_dc_step, pending_joins
-    from linear_slam_ros.joining.gate import PrefixCache, computed_parts, online_dc_marginal_by_entries
+    from linear_slam_ros.joining.divide_conquer import (
+        Deferred,
+        OnlineDCState,
+        leaf_entries,
+        leaf_maps,
+        online_dc_step,
+        pending_joins,
+    )
+    from linear_slam_ros.joining.gate import PrefixCache, online_dc_marginal_by_entries
 
     rng = np.random.default_rng(5)
     maps = noisy_local_maps(make_world(2, 80, 60, rng, loops=2.0), rng, steps_per_map=2)
@@ -299,7 +306,7 @@ def test_the_marginal_by_entries_folds_no_pending_merge_and_equals_the_merged_ma
         if i % 7 == 6:  # some land, as a worker's would
             pending_joins(state.stack)[0].value()
     pending = pending_joins(state.stack)
-    parts, counts = computed_parts(state.stack, state.counts)
+    parts, counts = leaf_entries(state.stack, state.counts)
     assert pending and any(isinstance(p, Deferred) and p.done for p in parts)  # landed merges are parts whole
     assert [id(gate_module._entry_map(p)) for p in parts] == [id(m) for m in leaf_maps(state.stack)]
     assert sum(counts) == state.n_joined and len(parts) > len(state.stack)

@@ -32,17 +32,26 @@ from msg_adapters import decode_map  # noqa: E402
 from msg_adapters.ros import parts  # noqa: E402
 
 
-def call_trigger(node, name: str, timeout_s: float = 30.0):  # type: ignore[no-untyped-def]
+def call_trigger(node, name: str, timeout_s: float = 30.0, attempts: int = 3):  # type: ignore[no-untyped-def]
     """Call the ``std_srvs/Trigger`` service ``name`` from ``node``; return its response.
 
-    Asserts that the service appears and answers within ``timeout_s`` each; the client is destroyed.
+    Asserts that the service appears within ``timeout_s`` and answers one of ``attempts`` requests,
+    each given ``timeout_s``; the client is destroyed. A request is sent again when its answer does
+    not come: Fast DDS drops a service's response when the client's response reader has not matched
+    within 100 ms of the request (rmw_fastrtps' ``wait_for_subscription``; the server's rclpy only
+    warns "failed to send response (timeout)"), which a loaded machine sees now and then right
+    after ``wait_for_service``. The joiner's services (``save_map``, ``load_map``, ``reset``) are
+    idempotent, so a second request changes nothing the first did not.
     """
     client = node.create_client(Trigger, name)
     try:
         assert client.wait_for_service(timeout_sec=timeout_s), f"service {name} did not appear"
-        future = client.call_async(Trigger.Request())
-        assert spin_until(node, future.done, timeout_s, 0.05), f"{name} did not answer"
-        return future.result()
+        for _ in range(attempts):
+            future = client.call_async(Trigger.Request())
+            if spin_until(node, future.done, timeout_s, 0.05):
+                return future.result()
+            client.remove_pending_request(future)
+        raise AssertionError(f"{name} did not answer {attempts} requests of {timeout_s} s each")
     finally:
         node.destroy_client(client)
 

@@ -37,10 +37,10 @@ def call_trigger(node, name: str, timeout_s: float = 30.0, attempts: int = 3):  
 
     Asserts that the service appears within ``timeout_s`` and answers one of ``attempts`` requests,
     each given ``timeout_s``; the client is destroyed. A request is sent again when its answer does
-    not come: Fast DDS drops a service's response when the client's response reader has not matched
-    within 100 ms of the request (rmw_fastrtps' ``wait_for_subscription``; the server's rclpy only
-    warns "failed to send response (timeout)"), which a loaded machine sees now and then right
-    after ``wait_for_service``. The joiner's services (``save_map``, ``load_map``, ``reset``) are
+    not come: rmw_fastrtps drops a service's response when the client's response reader has not
+    matched after a short wait ("client will not receive response"; the server's rclpy only warns
+    "failed to send response (timeout)"), which a loaded machine can meet right after
+    ``wait_for_service`` (seen once in a full test run; not reproduced in 25 calls under load). The joiner's services (``save_map``, ``load_map``, ``reset``) are
     idempotent, so a second request changes nothing the first did not.
     """
     client = node.create_client(Trigger, name)

@@ -72,8 +72,11 @@ def is_bag(path: str | Path) -> bool:
     return p.is_dir() and (p / BAG_METADATA).is_file()
 
 
-def read_records(path: str | Path, topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, bytes, bool]]:
-    """Yield ``(topic, time_ns, cdr_bytes, latched)`` of a bag's messages in time order (optionally only ``topics``).
+def read_records(
+    path: str | Path, topics: Iterable[str] | None = None, msgtype: str | None = None
+) -> Iterator[tuple[str, int, bytes, bool]]:
+    """Yield ``(topic, time_ns, cdr_bytes, latched)`` of a bag's messages in time order (optionally only ``topics``,
+    only messages of type ``msgtype``, e.g. ``std_msgs/msg/Float64MultiArray``).
 
     ``latched``: the topic was recorded with a transient-local QoS.
 
@@ -83,7 +86,8 @@ def read_records(path: str | Path, topics: Iterable[str] | None = None) -> Itera
     wanted = set(topics) if topics is not None else None
     try:
         with Reader(Path(path)) as reader:
-            conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+            conns = [c for c in reader.connections
+                     if (wanted is None or c.topic in wanted) and (msgtype is None or c.msgtype == msgtype)]
             for conn, time_ns, raw in reader.messages(connections=conns):
                 latched = any(
                     getattr(q, "durability", None) == QosDurability.TRANSIENT_LOCAL
@@ -117,6 +121,11 @@ def _submap_topic(topic: str) -> str | None:
     return base if base in (LOCAL_MAP_TOPIC, POSE_GRAPH_TOPIC) else None
 
 
+def _namespace(topic: str) -> str:
+    """Return a topic's namespace (``/robot1/local_map``: ``/robot1``; ``local_map``, ``/local_map``: ``/``)."""
+    return topic.rstrip("/").rpartition("/")[0] or "/"
+
+
 @dataclass(frozen=True)
 class BagSubmaps:
     """The submaps of a bag, as local maps in sequence-number order.
@@ -144,11 +153,13 @@ def read_bag_submaps(path: str | Path, kind: str | None = None, limits: InputLim
     """Read every ``local_map`` and ``pose_graph`` message of a bag as a local map, as the joiner node would.
 
     Messages are decoded and validated with ``limits`` (default limits when None), ordered by
-    sequence number; a number seen before is skipped. Other topics (``global_map``...) are ignored.
-    ``kind``, when given, must be the bag's map kind (``2DPF``...).
+    sequence number; a number seen before is skipped. Other topics (``global_map``...), and topics
+    of another message type (an ``OccupancyGrid`` on ``/nav/local_map`` in a ``ros2 bag record -a``),
+    are ignored. ``kind``, when given, must be the bag's map kind (``2DPF``...).
 
     Raises:
-        DatasetError: the bag cannot be read, holds no submap message, a message is malformed
+        DatasetError: the bag cannot be read, holds no submap message, holds submaps of several
+            namespaces (several robots: each numbers its own submaps), a message is malformed
             or invalid (names the bag, the topic and the message's position), its recorded kind
             is not a map kind or not the maps', or ``kind`` is not the bag's.
     """
@@ -156,10 +167,15 @@ def read_bag_submaps(path: str | Path, kind: str | None = None, limits: InputLim
     by_seq: dict[int, LocalMap] = {}
     topics: dict[str, int] = {}
     repeated = 0
-    for i, (topic, _, raw, _) in enumerate(read_records(path)):
+    for i, (topic, _, raw, _) in enumerate(read_records(path, msgtype=MSGTYPE)):
         submap_topic = _submap_topic(topic)
         if submap_topic is None:
             continue
+        if topic not in topics and len({_namespace(t) for t in [*topics, topic]}) > 1:
+            raise DatasetError(
+                f"bag {where}: submap topics of several namespaces ({', '.join(sorted([*topics, topic]))}): one robot's "
+                "stream per bag (each robot numbers its own submaps); `join A B --robots` joins several"
+            )
         topics[topic] = topics.get(topic, 0) + 1
         try:
             parts = bag_parts(deserialize(raw))

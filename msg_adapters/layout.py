@@ -334,6 +334,10 @@ def _ints(values: FloatArray, name: str, what: str) -> npt.NDArray[np.int64]:
     return values.astype(np.int64)
 
 
+_STAMP_SEC_MAX = 2**31 - 1
+"""Largest stamp second ``builtin_interfaces/Time.sec`` (int32) holds: the node stamps its outputs with it."""
+
+
 def _header(seg: dict[str, FloatArray], size: int, what: str) -> npt.NDArray[np.int64]:
     header = seg["header"]
     if header.size < size:
@@ -344,8 +348,9 @@ def _header(seg: dict[str, FloatArray], size: int, what: str) -> npt.NDArray[np.
         raise MessageError(f"{what}: unsupported format version {h[0]} (this node reads {FORMAT_VERSION})")
     if h[1] not in (2, 3):
         raise MessageError(f"{what}: dimension must be 2 or 3, got {h[1]}")
-    if h[4] < 0 or not 0 <= h[5] < 1_000_000_000:
-        raise MessageError(f"{what}: invalid stamp {h[4]} s {h[5]} ns")
+    if not 0 <= h[4] <= _STAMP_SEC_MAX or not 0 <= h[5] < 1_000_000_000:
+        raise MessageError(f"{what}: invalid stamp {h[4]} s {h[5]} ns (seconds in [0, {_STAMP_SEC_MAX}], "
+                           "nanoseconds in [0, 1e9))")
     return h
 
 

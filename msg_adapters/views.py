@@ -160,6 +160,11 @@ def point_markers(
 ) -> MarkerArray:
     """Return the features as a point list plus, where given, one 2-sigma ellipse (ellipsoid) each.
 
+    The message starts with a ``DELETEALL``, so marker ids only tell this message's markers apart:
+    the ellipses are numbered from 0 in namespace ``covariance``, each with its feature's id in
+    ``text``. (A feature id need not fit ``Marker.id``, an int32: robot k's features are
+    k·2³² + i, and ids that wrapped would overwrite one another's ellipse.)
+
     Args:
         dim: 2 or 3.
         points: ``{feature id: (d,) position}`` in the frame ``frame_id``.
@@ -184,7 +189,7 @@ def point_markers(
         values = np.clip(values, 0.0, None)
         if np.linalg.det(vectors) < 0:
             vectors[:, 0] = -vectors[:, 0]
-        m = Marker(header=header, ns="covariance", id=fid, action=Marker.ADD)
+        m = Marker(header=header, ns="covariance", id=len(markers) - 2, action=Marker.ADD, text=str(fid))
         m.pose.position = Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0)
         axes = 2.0 * ELLIPSE_SIGMA * np.sqrt(values)  # full axis lengths
         if d == 2:

@@ -55,6 +55,9 @@ class FeatureMap:
             return  # the empty map: no feature, no frame (a joiner before its first map, after a reset)
         if len(self.frame_ids) != k or len(set(self.frame_ids)) != k:
             raise InvalidMapError(f"{who}: a {self.dim}D frame needs {k} distinct features, got {self.frame_ids}")
+        unique, counts = np.unique(self.ids, return_counts=True)
+        if unique.size != self.ids.size:
+            raise InvalidMapError(f"{who}: feature id {int(unique[counts > 1][0])} is listed more than once")
         if np.intersect1d(self.ids, np.array(self.frame_ids)).size:
             raise InvalidMapError(f"{who}: frame features {self.frame_ids} are also listed as variables")
         n = n_reduced(self.dim) + self.dim * self.ids.size

@@ -120,6 +120,38 @@ def test_bag_reading_errors_name_the_bag(tmp_path):
     assert _one_error(["join", str(broken), "--out", str(tmp_path / "o")]).startswith(f"cannot read bag {broken}")
 
 
+def test_a_bag_of_several_robots_is_refused_and_foreign_types_are_ignored(tmp_path):
+    """Each robot numbers its own submaps: merged by number, one robot's would replace the other's. A
+    ``ros2 bag record -a`` may hold another type on a topic named ``local_map``: it is not a submap."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from linear_slam_ros.ros.bagio import qos
+    from msg_adapters.bags import MSGTYPE, TYPESTORE
+
+    records = list(read_messages(BAGS / "vicpark200"))[:2]
+    two = tmp_path / "two_robots"
+    write_messages(two, [(f"/{robot}/local_map", r.time_ns, r.raw) for robot in ("a", "b") for r in records])
+    with pytest.raises(DatasetError, match=f"bag {re.escape(str(two))}: submap topics of several namespaces "
+                       "\\(/a/local_map, /b/local_map\\): one robot's stream per bag"):
+        read_source(two)
+    one = tmp_path / "one_robot"  # local_map and pose_graph of one namespace are one stream
+    write_messages(one, [("/a/local_map", r.time_ns, r.raw) for r in records])
+    assert len(read_source(one).maps) == 2
+
+    foreign = tmp_path / "foreign"
+    other_type = "std_msgs/msg/String"
+    writer = Writer(foreign, version=9, storage_plugin=StoragePlugin.MCAP)
+    with writer:
+        ours = writer.add_connection("/local_map", MSGTYPE, typestore=TYPESTORE, offered_qos_profiles=[qos(False)])
+        other = writer.add_connection("/nav/local_map", other_type, typestore=TYPESTORE, offered_qos_profiles=[qos(False)])
+        for r in records:
+            writer.write(ours, r.time_ns, r.raw)
+            text = TYPESTORE.types[other_type](data="not a submap")
+            writer.write(other, r.time_ns + 1, bytes(TYPESTORE.serialize_cdr(text, other_type)))
+    got = read_source(foreign)
+    assert [m.frame_id for m in got.maps] == [m.frame_id for m in read_source(BAGS / "vicpark200").maps[:2]]
+
+
 def _one_error(argv: list[str]) -> str:
     result = subprocess.run([sys.executable, "-m", "linear_slam_ros", *argv], capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr

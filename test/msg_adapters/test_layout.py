@@ -172,6 +172,10 @@ def test_map_message_errors(rng):
         (_mutate(enc, "header", np.r_[2, header[1:]]), "unsupported format version 2"),
         (_mutate(enc, "header", np.r_[header[0], 4, header[2:]]), "dimension must be 2 or 3, got 4"),
         (_mutate(enc, "header", np.r_[header[:4], -1, header[5:]]), "invalid stamp -1 s"),
+        # builtin_interfaces/Time.sec is int32: 2**31 s would wrap in the node's output stamps
+        (_mutate(enc, "header", np.r_[header[:4], 2**31, header[5:]]),
+         "invalid stamp 2147483648 s 0 ns \\(seconds in \\[0, 2147483647\\]"),
+        (_mutate(enc, "header", np.r_[header[:5], 1e9, header[6:]]), "invalid stamp .* s 1000000000 ns"),
         (_mutate(enc, "header", np.r_[header[:2], 2, header[3:]]), "map_kind must be 0 \\(local\\) or 1 \\(global\\), got 2"),
         (_mutate(enc, "header", np.r_[header[:3], 0.5, header[4:]]), "segment 'header' must hold integers"),
         (_mutate(enc, "var_kinds", np.zeros(3)), "var_ids but 3 var_kinds"),
@@ -265,6 +269,12 @@ def test_feature_only_and_pose_frame_messages_are_not_confused(rng):
     data = enc.data.copy()
     data[sum(enc.sizes[:f]) + 1] = data[sum(enc.sizes[:f])]  # F_X == F_O
     with pytest.raises(InvalidMapError, match="a 2D frame needs 2 distinct features"):
+        decode_feature_map(enc.labels, enc.sizes, data)
+    i = enc.labels.index("var_ids")
+    data = enc.data.copy()
+    first = sum(enc.sizes[:i])
+    data[first + 1] = data[first]  # two variables with one id: positions() would keep one of them
+    with pytest.raises(InvalidMapError, match=f"feature id {int(data[first])} is listed more than once"):
         decode_feature_map(enc.labels, enc.sizes, data)
 
 

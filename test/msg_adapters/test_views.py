@@ -65,3 +65,18 @@ def test_transform_maps_child_coordinates_into_the_parent_frame():
     ahead = Rotation.from_quat([r.x, r.y, r.z, r.w]).apply([1.0, 0.0, 0.0])  # 1 m ahead of the robot
     tr = t.transform.translation
     np.testing.assert_allclose(ahead + [tr.x, tr.y, tr.z], [3.0, 5.0, 0.0], atol=1e-15)
+
+
+def test_feature_markers_have_distinct_ids_when_feature_ids_exceed_int32():
+    """Robot 1's feature 7 is 2**32 + 7: as ``Marker.id`` (int32) it would wrap onto robot 0's feature 7."""
+    from msg_adapters.views import point_markers
+
+    ids = [7, 2**32 + 7, 2**40 + 3]
+    points = {fid: np.array([float(k), 1.0]) for k, fid in enumerate(ids)}
+    covariances = {fid: np.diag([0.1 * (k + 1), 0.2]) for k, fid in enumerate(ids)}
+    markers = point_markers(2, points, "map", STAMP, covariances).markers
+    ellipses = [m for m in markers if m.ns == "covariance"]
+    assert [m.id for m in ellipses] == [0, 1, 2]
+    assert [int(m.text) for m in ellipses] == ids
+    assert [m.pose.position.x for m in ellipses] == [0.0, 1.0, 2.0]
+    assert markers[0].action == markers[0].DELETEALL

@@ -40,8 +40,9 @@ def call_trigger(node, name: str, timeout_s: float = 30.0, attempts: int = 3):  
     not come: rmw_fastrtps drops a service's response when the client's response reader has not
     matched after a short wait ("client will not receive response"; the server's rclpy only warns
     "failed to send response (timeout)"), which a loaded machine can meet right after
-    ``wait_for_service`` (seen once in a full test run; not reproduced in 25 calls under load). The joiner's services (``save_map``, ``load_map``, ``reset``) are
-    idempotent, so a second request changes nothing the first did not.
+    ``wait_for_service`` (seen once in a full test run; not reproduced in 25 calls under load).
+    The joiner's services (``save_map``, ``load_map``, ``reset``) are idempotent, so a second
+    request changes nothing the first did not.
     """
     client = node.create_client(Trigger, name)
     try:

@@ -161,7 +161,7 @@ def read_bag_submaps(path: str | Path, kind: str | None = None, limits: InputLim
         DatasetError: the bag cannot be read, holds no submap message, holds submaps of several
             namespaces (several robots: each numbers its own submaps), a message is malformed
             or invalid (names the bag, the topic and the message's position), its recorded kind
-            is not a map kind or not the maps', or ``kind`` is not the bag's.
+            is not a map kind or not the maps' (its maps of two dimensions), or ``kind`` is not the bag's.
     """
     where = str(path)
     by_seq: dict[int, LocalMap] = {}
@@ -197,10 +197,17 @@ def read_bag_submaps(path: str | Path, kind: str | None = None, limits: InputLim
         raise DatasetError(f"bag {where}: no {LOCAL_MAP_TOPIC} or {POSE_GRAPH_TOPIC} messages")
     seqs = tuple(sorted(by_seq))
     maps = tuple(by_seq[s] for s in seqs)
+    other = next((i for i, m in enumerate(maps) if m.dim != maps[0].dim), None)
+    if other is not None:
+        raise DatasetError(f"bag {where}: submap seq {seqs[other]} is {maps[other].dim}D, seq {seqs[0]} {maps[0].dim}D: "
+                           "one bag holds one map kind")
     custom = bag_custom_data(path)
-    found = custom.get(CUSTOM_KIND) or kind_of(maps)
+    told = kind_of(maps)
+    found = custom.get(CUSTOM_KIND) or told
     if not re.fullmatch(r"[23]D(PF|PG)", found) or int(found[0]) != maps[0].dim:
         raise DatasetError(f"bag {where}: its metadata names map kind {found!r}, its maps are {maps[0].dim}D")
+    if found.endswith("PG") and told.endswith("PF"):
+        raise DatasetError(f"bag {where}: its metadata names map kind {found!r} (pose graph), its maps hold features")
     if kind is not None and str(kind) != found:
         raise DatasetError(f"bag {where} holds {found} maps, not {kind}")
     return BagSubmaps(maps, seqs, found, topics, custom, repeated)

@@ -79,6 +79,8 @@ MAP_KIND_POSE_GRAPH = 2
 
 MAP_SEGMENTS = ("header", "var_ids", "var_kinds", "state", "info_rows", "info_cols", "info_vals")
 CHUNK_SEGMENTS = ("header", "edge_from", "edge_to", "measurement", "information")
+_MAP_READ = frozenset((*MAP_SEGMENTS, "stats", "islands", "frame_features"))
+"""Segments of a map message the decoders read (others are ignored, non-finite values included)."""
 STATS_FIELDS = (
     "n_joined", "n_rejected", "last_join_ms", "join_ms_p50", "join_ms_p99", "join_ms_max", "join_seconds_total", "n_islands",
 )
@@ -188,8 +190,25 @@ class ChunkMessage:
     stamp: Stamp
 
 
+_ID_SEGMENTS = frozenset(("header", "var_ids", "islands", "frame_features", "edge_from", "edge_to"))
+"""Segments of integers given by the caller (ids, sequence numbers), checked by :func:`_encode`; the
+information's indices are below the state's size."""
+
+
 def _encode(segments: Sequence[tuple[str, npt.ArrayLike]]) -> Encoded:
+    """Encode segments as doubles.
+
+    Raises:
+        MessageError: an id or header value cannot be carried exactly by a double (|v| >= 2**53).
+    """
     arrays = [np.ravel(np.asarray(v, dtype=np.float64) if not isinstance(v, np.ndarray) else v) for _, v in segments]
+    for (label, value), array in zip(segments, arrays, strict=True):
+        if label in _ID_SEGMENTS and array.size:
+            ints = np.asarray(value)
+            big = np.abs(ints.astype(np.float64) if ints.dtype.kind == "f" else ints) >= _MAX_EXACT
+            if np.any(big):
+                raise MessageError(f"segment {label!r}: value {np.ravel(ints)[np.ravel(big)][0]} cannot be carried "
+                                   "exactly as a double (|value| >= 2**53)")
     return Encoded(tuple(k for k, _ in segments), tuple(arrays))
 
 
@@ -397,7 +416,7 @@ def _decode_map_fields(
         raise MessageError(f"{what}: map_kind must be {MAP_KIND_LOCAL} (local) or {MAP_KIND_GLOBAL} (global), got {map_kind}")
     what = f"map message seq {seq}"
     _check_map_sizes(seg, limits, what)
-    _check_finite(seg, what)
+    _check_finite({k: v for k, v in seg.items() if k in _MAP_READ}, what)  # readers ignore other labels
     ids = _ints(seg["var_ids"], "var_ids", what)
     kinds = _ints(seg["var_kinds"], "var_kinds", what)
     if ids.size != kinds.size:
@@ -414,9 +433,13 @@ def _decode_map_fields(
         raise MessageError(f"{what}: information triplets must be in the upper triangle (row <= col)")
     if np.unique(rows * max(n, 1) + cols).size != rows.size:
         raise MessageError(f"{what}: repeated information entry")
+    frame_id, end_id, n_submaps = int(h[6]), int(h[7]), int(h[8])
+    if frame_id < -1 or end_id < -1 or n_submaps < 0:
+        raise MessageError(f"{what}: header frame_pose_id {frame_id}, end_pose_id {end_id}, n_submaps {n_submaps}: "
+                           "pose ids are >= 0 (-1: none) and n_submaps >= 0")
     stored = symmetric_from_upper(rows, cols, vals, n)
     return _MapFields(
-        dim, map_kind, seq, Stamp(int(h[4]), int(h[5])), int(h[6]), None if h[7] < 0 else int(h[7]), int(h[8]),
+        dim, map_kind, seq, Stamp(int(h[4]), int(h[5])), frame_id, None if end_id < 0 else end_id, n_submaps,
         ids, kinds, seg["state"].copy(), stored, _stats(seg), seg, what,
     )
 
@@ -479,6 +502,8 @@ def decode_map(
     f = _decode_map_fields(labels, sizes, data, data_offset, lim)
     if "frame_features" in f.segments:
         raise MessageError(f"{f.what}: a feature-only map (segment 'frame_features'); decode it with decode_feature_map")
+    if f.frame_pose_id < 0:
+        raise MessageError(f"{f.what}: frame_pose_id {f.frame_pose_id}: a map in a pose's frame needs a pose id >= 0")
     name = f"{'local' if f.map_kind == MAP_KIND_LOCAL else 'global'} map seq {f.seq}"
     kinds = f.kinds
     if np.any((kinds != 0) & (kinds != 1)):
@@ -512,6 +537,9 @@ def decode_feature_map(
     if "frame_features" not in f.segments:
         raise MessageError(f"{f.what}: no 'frame_features' segment: not a feature-only map (decode it with decode_map)")
     frame = _ints(f.segments["frame_features"], "frame_features", f.what)
+    if f.frame_pose_id != -1 or f.end_pose_id is not None:
+        raise MessageError(f"{f.what}: a feature-only map's frame_pose_id and end_pose_id are -1 (its frame is "
+                           f"defined by features), got {f.frame_pose_id} and {-1 if f.end_pose_id is None else f.end_pose_id}")
     if np.any(f.kinds != 1):
         raise InvalidMapError(f"feature-only map seq {f.seq}: every variable must be a feature (kind 1)")
     name = f"feature-only map seq {f.seq}"

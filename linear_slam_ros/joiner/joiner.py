@@ -683,7 +683,8 @@ class Joiner:
         )
 
     def restore(self, saved: SavedJoiner) -> None:
-        """Carry on from a saved value (its method and map type replace this joiner's; latency figures restart).
+        """Carry on from a saved value (its method and map type replace this joiner's; latency figures and the
+        gate's decision records, :attr:`gated` and :attr:`reinitialised`, restart: the counts by reason stay).
 
         Raises:
             ConfigError: the saved state's strategy differs from this joiner's.
@@ -711,6 +712,8 @@ class Joiner:
         self._progress_at = collections.defaultdict(self.clock, {r: self.clock() for r in ("", *self._pending)})
         self.n_skipped = saved.n_skipped
         self.join_seconds.clear()
+        self.gated.clear()  # they described the map this one replaces
+        self.reinitialised.clear()
 
     @property
     def n_rejected(self) -> int:

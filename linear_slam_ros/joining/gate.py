@@ -416,7 +416,9 @@ class EntryCovariance:
     variables the gate asks of it (those it shares with the other entries, the arriving submaps'
     loop closures) mostly recur. So its information is factorised once (:func:`spd_factor`), a
     variable asked for the first time costs one solve per scalar, and the covariance block of every
-    variable asked so far is kept. Exact: the same covariance as a factorisation per call.
+    variable asked so far is kept. The same covariance as a factorisation per call to round-off,
+    not bit for bit: an entry between two variables comes from the column of the one solved later
+    (history-dependent at 1e-16 relative; a resumed joiner starts with an empty cache).
     """
 
     def __init__(self, local_map: LocalMap) -> None:
@@ -509,7 +511,8 @@ class EntryCache:
     The parts are the merge of the stack's :func:`big_prefix` (when it has two entries or more,
     merged by :attr:`prefixes`) and each entry after it. Parts are keyed by the identity of their
     entries and kept while they are on the newest stack asked about or the one before (a
-    benchmark's trials alternate between two states). Results never depend on it.
+    benchmark's trials alternate between two states). Results depend on it at round-off only
+    (:class:`EntryCovariance`).
     """
 
     _held: dict[Token, tuple[tuple[Entry, ...], EntryCovariance]] = field(default_factory=dict)

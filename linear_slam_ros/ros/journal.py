@@ -5,7 +5,9 @@ With ``state_dir`` set, the node appends every submap message it accepts (the ra
 :meth:`Journal.append` BEFORE joining it. After a crash it restores its newest snapshot, which
 records how many journal records it includes, and replays the records after that count
 (:func:`read_journal`, :meth:`JournalContents.after`). A record's index is its position in the
-whole journal, 0-based, in arrival order, across all storage files.
+whole journal, 0-based, in arrival order, across all storage files, as appended: the reader takes
+it from the record's MCAP sequence, so records lost before it (a damaged earlier file) do not
+renumber it.
 
 On-disk layout (``<state_dir>/journal/``)::
 
@@ -27,7 +29,7 @@ is appended: the magic, a Header, the Schema (``ros2msg``), a Metadata record ``
 topic a Channel (``cdr``; ``offered_qos_profiles``, ``topic_type_hash``) before its first
 Message. Each Message: log time = publish time = the receive time given to :meth:`Journal.append`
 (ns; made non-decreasing within a file, see there), sequence = the record's journal index
-(mod 2**32; the reader reports a mismatch), data = the raw CDR bytes. :meth:`Journal.close`
+(mod 2**32; the reader unwraps it, and reports a gap or a record out of order), data = the raw CDR bytes. :meth:`Journal.close`
 appends DataEnd, the summary (schema, channels, statistics, metadata index) and the Footer.
 
 Crash safety:
@@ -72,6 +74,7 @@ order. Not verified against a ROS install here (rosbag2 is not on PyPI).
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import fcntl
 import logging
@@ -151,7 +154,8 @@ class JournalRecord:
     """One journaled message.
 
     Attributes:
-        index: position in the whole journal, 0-based, across storage files.
+        index: the index it was appended with: its position in the whole journal, 0-based, across
+            storage files (records lost before it do not renumber it).
         topic: the topic it was received on (``local_map`` or ``pose_graph``).
         raw: its CDR bytes (a ``std_msgs/msg/Float64MultiArray``), exactly as appended.
         log_time_ns: its receive time, ns (as stored: non-decreasing within a storage file).
@@ -193,7 +197,8 @@ class JournalContents:
 
     Attributes:
         folder: the journal folder.
-        records: the complete records, in journal order (``records[i].index == i``).
+        records: the complete records, in journal order (indices increasing; a gap where records
+            were lost).
         files: one entry per storage file found, in order.
         problems: one line per problem found, naming the file: a record cut short or damaged, a
             storage file missing or not MCAP, records out of sequence, an unreadable metadata.yaml.
@@ -208,11 +213,12 @@ class JournalContents:
 
     @property
     def count(self) -> int:
-        """Number of complete records: the index the next appended record gets."""
-        return len(self.records)
+        """The index the next appended record gets: one past the last complete record's (records lost
+        in the middle still count)."""
+        return self.records[-1].index + 1 if self.records else 0
 
     def after(self, count: int) -> tuple[JournalRecord, ...]:
-        """Return the records a snapshot including the first ``count`` records lacks (to replay).
+        """Return the records a snapshot including the first ``count`` records lacks (to replay): those of index ``count`` on.
 
         Args:
             count: journal records the snapshot includes (>= 0). More than :attr:`count` gives an
@@ -221,7 +227,7 @@ class JournalContents:
         """
         if count < 0:
             raise ValueError(f"record count must be >= 0, got {count}")
-        return self.records[count:]
+        return self.records[bisect.bisect_left(self.records, count, key=lambda r: r.index):]
 
 
 # ---------------------------------------------------------------------------------------- reading
@@ -423,27 +429,46 @@ def _inventory(folder: Path) -> tuple[dict[int, Path], list[str]]:
     return on_disk, problems
 
 
+def _index(sequence: int, previous: int) -> int | None:
+    """Return the journal index of a record carrying ``sequence`` (its index mod 2**32) read after record
+    ``previous`` (-1: none), or ``None`` when it cannot follow it (a sequence behind, or 2**31 ahead or more)."""
+    ahead = (sequence - (previous + 1)) & _SEQUENCE_MASK
+    return previous + 1 + ahead if ahead < 1 << 31 else None
+
+
 def _read(folder: Path) -> tuple[JournalContents, dict[int, _Scan]]:
-    """Read a journal folder: its contents, and each storage file's scan by number."""
+    """Read a journal folder: its contents, and each storage file's scan by number.
+
+    A record's index is the one it was appended with (its MCAP sequence, mod 2**32, unwrapped
+    after the record before it), not its position: when a storage file lost records (a damaged
+    or truncated middle, a missing file), the records after them keep their indices, so a
+    snapshot's record count still says which records it includes. A record whose sequence cannot
+    follow the one before (out of order) is numbered next, and reported.
+    """
     on_disk, problems = _inventory(folder)
     records: list[JournalRecord] = []
     files: list[JournalFile] = []
     scans: dict[int, _Scan] = {}
+    last = -1
     for k in sorted(on_disk):
         scan = scans[k] = _scan_file(on_disk[k])
-        first = len(records)
+        start = len(records)
         mismatch = None
         for topic, sequence, log_time, _publish, raw in scan.messages:
-            index = len(records)
-            if mismatch is None and sequence != index & _SEQUENCE_MASK:
-                mismatch = (
-                    f"{scan.name}: record {index} carries sequence {sequence}: records before it are missing or out of order"
-                )
+            index = _index(sequence, last)
+            if index is None:
+                index = last + 1
+                mismatch = mismatch or f"{scan.name}: record {index} carries sequence {sequence}: out of order, numbered {index}"
+            elif index > last + 1:
+                lost = f"record {last + 1}" if index == last + 2 else f"records {last + 1} to {index - 1}"
+                mismatch = mismatch or f"{scan.name}: {lost} missing before record {index}"
             records.append(JournalRecord(index, topic, raw, log_time))
-        count = len(records) - first
-        problem = _describe(scan, first, count)
+            last = index
+        count = len(records) - start
+        problem = _describe(scan, last if count else None)
         problems.extend(p for p in (problem, mismatch) if p)
         times = [m[2] for m in scan.messages]
+        first = records[start].index if count else last + 1
         files.append(
             JournalFile(
                 scan.name, first, count, min(times) if times else None, max(times) if times else None, scan.closed, scan.dropped
@@ -452,7 +477,7 @@ def _read(folder: Path) -> tuple[JournalContents, dict[int, _Scan]]:
     return JournalContents(folder, tuple(records), tuple(files), tuple(problems)), scans
 
 
-def _describe(scan: _Scan, first: int, count: int) -> str | None:
+def _describe(scan: _Scan, last: int | None) -> str | None:
     """Return the problem line of a storage file, or ``None`` when it lost nothing.
 
     A file whose session ended without :meth:`Journal.close` (a kill between two records, while
@@ -467,7 +492,7 @@ def _describe(scan: _Scan, first: int, count: int) -> str | None:
     if scan.closed or scan.size == 0 or scan.state == "unclosed" or scan.in_summary or scan.cut_opcode == Opcode.DATA_END:
         return None
     what = "truncated" if scan.state == "truncated" else f"damaged ({scan.detail})"
-    where = f"after record {first + count - 1}" if count else "before its first record"
+    where = f"after record {last}" if last is not None else "before its first record"
     return f"{name}: {what} {where} ({scan.dropped} bytes dropped)"
 
 
@@ -900,6 +925,7 @@ class Journal:
         fsync_every: int | None = DEFAULT_FSYNC_EVERY,
         clock: Callable[[], float] = time.monotonic,
         sync_in_append: bool = True,
+        first_index: int = 0,
     ) -> Journal:
         """Open a journal for appending: create the folder, or add a new storage file to a journal.
 
@@ -919,6 +945,9 @@ class Journal:
                 :meth:`maybe_sync` (from a timer, off the appending thread) and :meth:`flush` fsync,
                 so an append never waits for the disk (the node's choice: the bound becomes the
                 policy plus the timer's period).
+            first_index: the least index the next record may get: a snapshot that includes more
+                records than the journal still holds (its tail lost) must not see later records
+                numbered as ones it includes.
 
         Raises:
             JournalError: the folder holds something else than a journal, one of its storage files
@@ -961,9 +990,8 @@ class Journal:
             try:
                 storage.fsync()
                 fsync_path(folder)
-                journal = cls(
-                    folder, storage, earlier, contents.count, fsync_period_s, fsync_every, clock, lock, sync_in_append
-                )
+                next_index = max(contents.count, first_index)
+                journal = cls(folder, storage, earlier, next_index, fsync_period_s, fsync_every, clock, lock, sync_in_append)
                 _write_metadata(folder, journal._files(), fsync=True)
             except OSError as exc:
                 storage.abandon()
@@ -971,7 +999,7 @@ class Journal:
         except BaseException:
             lock.close()
             raise
-        logger.info("journal %s: appending to %s from record %d", folder, name, contents.count)
+        logger.info("journal %s: appending to %s from record %d", folder, name, next_index)
         return journal
 
     @property

@@ -283,8 +283,8 @@ class JoinerNode(Node):
         submap = qualify(submap, self._slots[robot])
         self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp, robot=robot)
 
-    def _replay(self, topic: str, raw: bytes) -> None:
-        """Offer a journaled message again (recovery): decoded as on arrival, not journaled twice."""
+    def _replay(self, topic: str, raw: bytes, index: int) -> None:
+        """Offer journal record ``index`` again (recovery): decoded as on arrival, not journaled twice."""
         robot = topic.rpartition("/")[0]
         try:
             if robot not in self._slots:
@@ -292,9 +292,9 @@ class JoinerNode(Node):
             submap, seq, stamp = _decode(topic, raw, self.config.limits)
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
-            self._journal_records += 1
+            self._journal_records = index + 1
             return
-        self._offer(qualify(submap, self._slots[robot]), seq, self._journal_records, stamp=stamp, robot=robot)
+        self._offer(qualify(submap, self._slots[robot]), seq, index, stamp=stamp, robot=robot)
 
     def _offer(
         self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None,
@@ -417,15 +417,29 @@ class JoinerNode(Node):
     def _on_reset(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         # after a publication under way: it must not bring the cleared map's pose and covariance back
         with self._output_lock:
-            self._reset()
+            try:
+                self._reset()
+            except OSError as exc:  # start.json not written: nothing was changed
+                response.success, response.message = False, f"reset failed, the map is unchanged: {exc}"
+                self.get_logger().error(response.message)
+                return response
         self._outputs.wake()
         response.success, response.message = True, "global map cleared"
         self.get_logger().info("global map reset")
         return response
 
     def _reset(self) -> None:
-        """Clear the map, the per-submap records and the refiner; snapshot the empty state (under the output lock)."""
-        with self._lock:
+        """Clear the map, the per-submap records and the refiner; snapshot the empty state (under the output lock).
+
+        With ``state_dir``, the journal position of the reset is recorded first (``start.json``): no
+        recovery replays the cleared map's records, whatever happens to the next snapshot.
+
+        Raises:
+            OSError: ``start.json`` cannot be written (the map is left as it was).
+        """
+        with self._snapshot_lock, self._lock:  # no snapshot of the old map is written after the mark
+            if self.store is not None:
+                self.store.mark_start(self._journal_records)
             self.joiner.reset()
             self.n_received = 0
             self._version += 1
@@ -499,7 +513,7 @@ class JoinerNode(Node):
         loaded = False
         if self.store is not None and self.store.has_state():
             recovery = self.store.recover(self.joiner, self._replay)
-            self._journal_records = recovery.snapshot_records + recovery.replayed
+            self._journal_records = recovery.journal_records
             self._snapshot_records, self._snapshot_joined = recovery.snapshot_records, self.joiner.state.n_joined
             self._version += 1  # publish the resumed map at once
             self.get_logger().info(
@@ -516,7 +530,7 @@ class JoinerNode(Node):
             loaded = True
         self._persist_seconds["restore"] = time.perf_counter() - t0
         if self.store is not None:
-            self.store.open_journal()
+            self.store.open_journal(self._journal_records)
             if self._journal_records > max(self._snapshot_records, 0) or loaded:
                 self._snapshot()  # so that the next resume need not replay (or lose the loaded map)
 
@@ -525,7 +539,9 @@ class JoinerNode(Node):
         saved = read_snapshot(path)
         if not isinstance(saved, SavedJoiner):
             raise SnapshotError(f"state file {path} holds no joiner state")
-        with self._lock:
+        with self._snapshot_lock, self._lock:  # the new map's start recorded before it replaces the old one
+            if self.store is not None:
+                self.store.mark_start(self._journal_records, path)
             self.joiner.restore(dataclasses.replace(saved, journal_records=self._journal_records))
             self._poses.unknown()
             self._version += 1

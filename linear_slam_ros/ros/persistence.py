@@ -3,6 +3,8 @@
 Layout of ``state_dir``::
 
     journal/                  rosbag2 bag (MCAP): every accepted local_map / pose_graph message, raw
+    start.json                where the current map starts (after a ``~/reset`` or a loaded state file):
+                              {"journal_records": n, "state_file": path or null}; absent: at record 0, empty
     snapshots/state_<n>.npz   exact joiner state including the first n journal records (two kept)
     snapshots/blobs/<sha256>.npz
                               the large maps the snapshots name, each written once (see
@@ -15,11 +17,21 @@ are replayed through the joiner. The journal is the source of truth: a snapshot 
 replay time, so no problem with a snapshot can lose a submap, and a corrupt snapshot is never
 used. A truncated journal tail (a kill while a record was being written) is reported and
 dropped: that message was never joined.
+
+A ``~/reset`` or a loaded state file (``~/load_map``, ``initial_map``) starts a new map at some
+journal record n: :meth:`StateStore.mark_start` records that in ``start.json`` (atomically, fsynced)
+and deletes the snapshots of the old map before anything changes. Recovery then starts from
+there whatever happens to the snapshot written next: the records before n, which belong to the
+cleared or replaced map, are never replayed, and with no usable snapshot from n on the map starts
+empty (a reset) or from the state file again (a load).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+import os
 import re
 import threading
 import time
@@ -27,6 +39,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from linear_slam_ros.core.durable import fsync_path
 from linear_slam_ros.core.errors import LinearSlamError
 from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner
 from linear_slam_ros.joiner.snapshot import BLOB_MIN_BYTES, BlobStore, SnapshotError, blob_names, read_snapshot, write_snapshot
@@ -38,8 +51,9 @@ SNAPSHOTS_KEPT = 2
 """Snapshots kept in ``snapshots/``: the newest, and one to fall back to."""
 _SNAPSHOT_NAME = re.compile(r"^state_(\d+)\.npz$")
 
-Offer = Callable[[str, bytes], None]
-"""``(topic, raw CDR bytes) -> None``: decode one journaled message and offer it to the joiner."""
+Offer = Callable[[str, bytes, int], None]
+"""``(topic, raw CDR bytes, journal index) -> None``: decode one journaled message and offer it to the joiner."""
+START_NAME = "start.json"
 
 
 @dataclass(frozen=True)
@@ -47,9 +61,12 @@ class Recovery:
     """What :meth:`StateStore.recover` found and did.
 
     Attributes:
-        snapshot: the snapshot restored (``None``: none was usable, or there was none).
-        snapshot_records: journal records the restored snapshot included.
+        snapshot: the snapshot restored (``None``: none was usable, or there was none; or the state
+            file the map started from, ``start.json``).
+        snapshot_records: journal records the restored snapshot included (where the map starts).
         replayed: journal records replayed after it.
+        journal_records: journal records the recovered state includes: the index the next record
+            must get at least.
         problems: every problem found (a corrupt snapshot, a truncated journal), one line each.
         seconds: wall time of the recovery, s.
     """
@@ -59,6 +76,7 @@ class Recovery:
     replayed: int
     problems: tuple[str, ...]
     seconds: float
+    journal_records: int = 0
 
 
 class StateStore:
@@ -105,8 +123,11 @@ class StateStore:
         t0 = time.perf_counter()
         problems: list[str] = []
         restored: Path | None = None
-        records_in_snapshot = 0
-        for _, path in self.snapshots():
+        start, state_file = self._start(problems)
+        records_in_snapshot = start
+        for count, path in self.snapshots():
+            if count < start:  # of a map cleared or replaced since (mark_start deletes them; a crash may not have)
+                continue
             try:
                 saved = read_snapshot(path, self.blobs)
             except SnapshotError as exc:
@@ -118,26 +139,77 @@ class StateStore:
             joiner.restore(saved)
             restored, records_in_snapshot = path, saved.journal_records
             break
-        replayed = 0
+        if restored is None and state_file is not None:  # the loaded state the map started from, again
+            try:
+                saved = read_snapshot(state_file)
+                if not isinstance(saved, SavedJoiner):
+                    raise SnapshotError(f"state file {state_file} holds no joiner state")
+                joiner.restore(dataclasses.replace(saved, journal_records=start))
+                restored = state_file
+            except (SnapshotError, OSError) as exc:
+                problems.append(f"{exc}: the map it started from is lost, starting empty at journal record {start}")
+        replayed, last = 0, records_in_snapshot - 1
         if self.journal_dir.exists():
             contents = read_journal(self.journal_dir)
             problems.extend(contents.problems)
-            if len(contents.records) < records_in_snapshot:
+            if contents.count < records_in_snapshot:
                 problems.append(
-                    f"journal {self.journal_dir} holds {len(contents.records)} records, snapshot {restored} "
+                    f"journal {self.journal_dir} ends at record {contents.count}, snapshot {restored} "
                     f"includes {records_in_snapshot}: the journal lost records the snapshot still holds"
                 )
             for record in contents.after(records_in_snapshot):
-                offer(record.topic, record.raw)
-                replayed += 1
+                offer(record.topic, record.raw, record.index)
+                replayed, last = replayed + 1, record.index
         for line in problems:
             logger.warning("%s", line)
-        return Recovery(restored, records_in_snapshot, replayed, tuple(problems), time.perf_counter() - t0)
+        return Recovery(restored, records_in_snapshot, replayed, tuple(problems), time.perf_counter() - t0, last + 1)
 
-    def open_journal(self) -> Journal:
-        """Open the journal for appending (a new storage file of the same bag)."""
+    def _start(self, problems: list[str]) -> tuple[int, Path | None]:
+        """Return where the current map starts (``start.json``): its first journal record, and the state file it
+        was loaded from (``None``: empty); ``(0, None)`` without the file. An unreadable file is reported."""
+        path = self.folder / START_NAME
+        if not path.exists():
+            return 0, None
+        try:
+            start = json.loads(path.read_text(encoding="utf-8"))
+            records, state_file = start["journal_records"], start["state_file"]
+            if not isinstance(records, int) or records < 0 or not (state_file is None or isinstance(state_file, str)):
+                raise ValueError(f"unexpected content {start}")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            problems.append(f"{path} cannot be read ({exc}): the map is recovered from the whole journal")
+            return 0, None
+        return records, Path(state_file) if state_file is not None else None
+
+    def mark_start(self, journal_records: int, state_file: Path | None = None) -> None:
+        """Record that a new map starts at journal record ``journal_records``: empty (a reset), or the state of
+        ``state_file`` (a load); then delete every snapshot (of the old map).
+
+        Call it before the joiner changes, and before the snapshot of the new map, with no snapshot
+        written in between (the node holds its snapshot lock): whatever happens afterwards, recovery
+        never brings the old map back.
+
+        Raises:
+            OSError: ``start.json`` cannot be written (nothing was deleted).
+        """
+        self.folder.mkdir(parents=True, exist_ok=True)
+        path = self.folder / START_NAME
+        tmp = path.with_name(f".{START_NAME}.tmp")
+        record = {"journal_records": int(journal_records), "state_file": str(state_file.resolve()) if state_file else None}
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(record, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+        fsync_path(self.folder)
+        with self._snapshot_lock:
+            for _, old in self.snapshots():
+                old.unlink(missing_ok=True)
+
+    def open_journal(self, first_index: int = 0) -> Journal:
+        """Open the journal for appending (a new storage file of the same bag); its next record's index is at
+        least ``first_index`` (the journal records the restored state includes: :attr:`Recovery.journal_records`)."""
         if self._journal is None:  # fsyncs run on the node's output thread (maybe_sync), never inside an append
-            self._journal = Journal.open(self.journal_dir, sync_in_append=False)
+            self._journal = Journal.open(self.journal_dir, sync_in_append=False, first_index=first_index)
         return self._journal
 
     @property

@@ -152,6 +152,19 @@ def test_a_bag_of_several_robots_is_refused_and_foreign_types_are_ignored(tmp_pa
     assert [m.frame_id for m in got.maps] == [m.frame_id for m in read_source(BAGS / "vicpark200").maps[:2]]
 
 
+def test_a_bag_of_two_kinds_or_of_a_kind_its_maps_are_not_is_refused(tmp_path):
+    planar = list(read_messages(BAGS / "vicpark200"))[:2]
+    spatial = list(read_messages(committed_bag("Simu_3D_870_Loop")))[2:3]  # its third submap: seq 3
+    mixed = tmp_path / "mixed"
+    write_messages(mixed, [(r.topic, r.time_ns, r.raw) for r in planar + spatial])
+    with pytest.raises(DatasetError, match="submap seq 3 is 3D, seq 1 2D: one bag holds one map kind"):
+        read_source(mixed)
+    told = tmp_path / "told_pose_graph"
+    write_messages(told, [(r.topic, r.time_ns, r.raw) for r in planar], custom_data={CUSTOM_KIND: "2DPG"})
+    with pytest.raises(DatasetError, match="its metadata names map kind '2DPG' \\(pose graph\\), its maps hold features"):
+        read_source(told)
+
+
 def _one_error(argv: list[str]) -> str:
     result = subprocess.run([sys.executable, "-m", "linear_slam_ros", *argv], capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 2 and len(result.stderr.splitlines()) == 1, result.stderr

@@ -80,7 +80,10 @@ def test_save_and_restore_carry_on_exactly(maps):
     assert [s for s, _ in saved.pending] == [4] and dict(saved.rejected) == {"FrameError": 1} and saved.n_skipped == 1
     assert saved.state.next_seq == 2 and saved.journal_records == 4  # the rejected 2 stays open
     other = Joiner(JoinMethod.ONLINE_DC, reorder_window=5)
+    other.gated.append("a decision on the map it replaces")  # type: ignore[arg-type]
+    other.reinitialised.append("likewise")  # type: ignore[arg-type]
     other.restore(saved)
+    assert other.gated == [] and other.reinitialised == []  # the records restart with the restored map
     for joiner in (j, other):
         assert joiner.offer(maps[1], 2) == [2]
         assert joiner.offer(maps[2], 3) == [3, 4]  # 3 fills the gap, the buffered 4 follows

@@ -178,12 +178,37 @@ def test_map_message_errors(rng):
         (_mutate(enc, "header", np.r_[header[:5], 1e9, header[6:]]), "invalid stamp .* s 1000000000 ns"),
         (_mutate(enc, "header", np.r_[header[:2], 2, header[3:]]), "map_kind must be 0 \\(local\\) or 1 \\(global\\), got 2"),
         (_mutate(enc, "header", np.r_[header[:3], 0.5, header[4:]]), "segment 'header' must hold integers"),
+        (_mutate(enc, "header", np.r_[header[:6], -3, header[7:]]),
+         "header frame_pose_id -3, end_pose_id .*: pose ids are >= 0 \\(-1: none\\)"),
+        (_mutate(enc, "header", np.r_[header[:7], -2, header[8:]]), "end_pose_id -2"),
+        (_mutate(enc, "header", np.r_[header[:8], -1]), "n_submaps -1"),
+        (_mutate(enc, "header", np.r_[header[:6], -1, header[7:]]), "frame_pose_id -1: a map in a pose's frame needs"),
         (_mutate(enc, "var_kinds", np.zeros(3)), "var_ids but 3 var_kinds"),
         (_mutate(enc, "info_rows", [0.0]), "info_rows, info_cols, info_vals sizes differ"),
     ]
     for args, match in cases:
         with pytest.raises(MessageError, match=match):
             decode_map(*args)
+
+
+def test_unknown_segments_are_ignored_even_when_not_finite(rng):
+    """Readers ignore labels they do not know (README, "Message layouts"): their values too."""
+    enc = _enc(rng)
+    labels = [*enc.labels, "future"]
+    sizes = [*enc.sizes, 2]
+    data = np.r_[enc.data, np.nan, np.inf]
+    back = decode_map(labels, sizes, data)
+    assert back.local_map.x.tobytes() == decode_map(enc.labels, enc.sizes, enc.data).local_map.x.tobytes()
+
+
+def test_ids_a_double_cannot_carry_are_refused_when_encoding():
+    from linear_slam_ros.core.local_map import LocalMap
+
+    m = LocalMap(2, 0, None, np.array([2**53 + 1]), np.array([1], np.int8), np.zeros(2), np.eye(2))
+    with pytest.raises(MessageError, match="segment 'var_ids': value 9007199254740993 cannot be carried exactly"):
+        encode_map(m, 1)
+    with pytest.raises(MessageError, match="segment 'header': value 9007199254740992 cannot be carried exactly"):
+        encode_map(m.replace(ids=np.array([1])), 2**53)
 
 
 def test_map_message_information_errors():
@@ -269,6 +294,10 @@ def test_feature_only_and_pose_frame_messages_are_not_confused(rng):
     data = enc.data.copy()
     data[sum(enc.sizes[:f]) + 1] = data[sum(enc.sizes[:f])]  # F_X == F_O
     with pytest.raises(InvalidMapError, match="a 2D frame needs 2 distinct features"):
+        decode_feature_map(enc.labels, enc.sizes, data)
+    data = enc.data.copy()
+    data[6] = 4.0  # header: frame_pose_id
+    with pytest.raises(MessageError, match="a feature-only map's frame_pose_id and end_pose_id are -1 .* got 4 and -1"):
         decode_feature_map(enc.labels, enc.sizes, data)
     i = enc.labels.index("var_ids")
     data = enc.data.copy()

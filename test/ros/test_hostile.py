@@ -414,6 +414,10 @@ def _unknown_segment(s: Segs, _ctx: Ctx) -> None:
     insert_after(s, "state", "quality", [0.5, 0.25, 0.125])
 
 
+def _unknown_segment_not_finite(s: Segs, _ctx: Ctx) -> None:
+    insert_after(s, "state", "quality", [np.nan, np.inf])
+
+
 def _empty_map(s: Segs, _ctx: Ctx) -> None:
     seg(s, "header")[7] = -1
     for label in ("var_ids", "var_kinds", "state", "info_rows", "info_cols", "info_vals"):
@@ -552,6 +556,7 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "seq-1e18", edit(_h(3, 1e18)), r"(?i)(header|seq\w*).*(integer|range|large)"),
         Case(stream, "stamp-negative", edit(_h(4, -1)), r"(?i)stamp"),
         Case(stream, "stamp-nanosec-1e9", edit(_h(5, 1e9)), r"(?i)stamp"),
+        Case(stream, "stamp-2^31", edit(_h(4, 2.0**31)), r"(?i)stamp"),  # Time.sec is int32: the outputs' stamps
         Case(stream, "stamp-inf", edit(_h(4, np.inf)), r"(?i)stamp|(non-finite|inf).*header"),
         Case(stream, "stamp-nanosec-NaN", edit(_h(5, np.nan)), r"(?i)stamp|(non-finite|nan).*header"),
         Case(stream, "state-NaN", edit(_set("state", 0, np.nan)), _nonfinite("state")),
@@ -587,6 +592,7 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "local-map-on-pose_graph", edit(lambda s, c: None, topic=GRAPH),
              r"(?i)pose_graph.*(missing segment|map_kind)"),
         Case(stream, "extra-unknown-segment-accepted", edit(_unknown_segment), None, rejected=0, skipped=1),
+        Case(stream, "unknown-segment-of-NaN-accepted", edit(_unknown_segment_not_finite), None, rejected=0, skipped=1),
         Case(stream, "resent-previous-submap", raw_case(_resent), None, rejected=0, skipped=1),
         Case(stream, "garbage-bytes", raw_case(_garbage), CDR),
         Case(stream, "truncated-cdr", raw_case(_truncated), CDR),

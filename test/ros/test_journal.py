@@ -237,11 +237,18 @@ def test_a_truncated_earlier_file_is_tolerated_and_reported(tmp_path: Path) -> N
         f.truncate(ends[3] + 10)  # record 3 and the closing summary lost (e.g. a damaged disk)
     contents = read_journal(folder)
     assert [r.raw for r in contents.records] == [m[1] for m in first[:3] + second]
-    assert [r.index for r in contents.records] == list(range(5))
+    assert [r.index for r in contents.records] == [0, 1, 2, 4, 5]  # as appended: a snapshot's count still holds
     assert contents.problems == (
         "journal_0.mcap: truncated after record 2 (10 bytes dropped)",
-        "journal_1.mcap: record 3 carries sequence 4: records before it are missing or out of order",
+        "journal_1.mcap: record 3 missing before record 4",
     )
+    assert contents.count == 6 and [r.index for r in contents.after(3)] == [4, 5] and contents.after(6) == ()
+    assert [(f.first_index, f.count) for f in contents.files] == [(0, 3), (4, 2)]
+    with Journal.open(folder) as journal:  # the next session numbers on from the last record, not from the count read
+        assert journal.next_index == 6 and journal.append(*first[0]) == 6
+    with Journal.open(folder, first_index=9) as journal:  # a snapshot that includes more than the journal holds
+        assert journal.append(*first[1]) == 9
+    assert [r.index for r in read_journal(folder).records] == [0, 1, 2, 4, 5, 6, 9]
 
 
 def test_a_zero_tail_is_reserved_space_and_a_damaged_tail_is_kept_aside(tmp_path: Path) -> None:
@@ -312,9 +319,9 @@ def test_files_listed_but_missing_or_not_mcap_are_reported(tmp_path: Path) -> No
     _write_session(folder, _messages(10, 2))
     (folder / "journal_0.mcap").unlink()
     contents = read_journal(folder)
-    assert [r.index for r in contents.records] == [0, 1]
+    assert [r.index for r in contents.records] == [2, 3]
     assert contents.problems[0].startswith("journal_0.mcap: listed in metadata.yaml but missing")
-    assert "carries sequence 2" in contents.problems[1]
+    assert contents.problems[1] == "journal_1.mcap: records 0 to 1 missing before record 2"
 
     (folder / "journal_2.mcap").write_bytes(b"not an mcap file at all")
     assert "journal_2.mcap: not an MCAP file" in read_journal(folder).problems[-1]
@@ -469,3 +476,16 @@ def test_one_writer_at_a_time(tmp_path: Path) -> None:
     assert read_journal(crashed).count == 0
     with Journal.open(crashed) as journal:
         assert journal.next_index == 0
+
+
+def test_indices_unwrap_the_32_bit_sequence_and_a_record_out_of_order_is_numbered_next(tmp_path: Path) -> None:
+    index = journal_module._index
+    assert index(0, -1) == 0 and index(7, -1) == 7  # a journal whose first records were lost
+    assert index(5, 2**32 + 3) == 2**32 + 5 and index(0, 2**32 - 1) == 2**32  # past the wrap of MCAP's sequence
+    assert index(3, 10) is None and index(10, 10) is None  # behind, or a repeat: cannot follow
+    folder = tmp_path / "journal"
+    _write_session(folder, _messages(11, 3))
+    shutil.copy(folder / "journal_0.mcap", folder / "journal_1.mcap")  # sequences 0..2 again after record 2
+    contents = read_journal(folder)
+    assert [r.index for r in contents.records] == [0, 1, 2, 3, 4, 5]
+    assert "journal_1.mcap: record 3 carries sequence 0: out of order, numbered 3" in contents.problems

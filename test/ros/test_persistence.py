@@ -7,6 +7,7 @@ shows that an uninterrupted node run equals it to 1e-9).
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import time
@@ -183,6 +184,36 @@ def test_snapshot_of_another_format_version_is_never_used(node, start_joiner, re
     assert f"format version 999, this build reads version {FORMAT_VERSION}" in output
     assert "an empty map and 80 journal record(s)" in output
     _assert_equals_offline(final, maps, mode)
+
+
+def test_a_reset_stays_reset_when_its_snapshot_is_lost(node, start_joiner, read_benchmark, tmp_path):
+    """``~/reset`` records where the new map starts (start.json) before the map is cleared: a restart whose
+    newest snapshot is corrupt neither brings the cleared map back nor skips the new submaps (numbered
+    from 1 again) as already handled."""
+    name, mode = "VicPark_200_local_maps", "online-dc"
+    maps = read_benchmark(name).maps
+    records = list(read_messages(_bag(name)))
+    state_dir = tmp_path / "state"
+    params = {"mode": mode, "state_dir": str(state_dir), "snapshot_period": 20, "publish_rate": 10.0}
+    joiner, _ = _run_to_end(node, start_joiner, records[:50], 50, **params)
+    assert call_trigger(node, f"/{joiner.namespace}/joiner/reset").success
+    assert json.loads((state_dir / "start.json").read_text()) == {"journal_records": 50, "state_file": None}
+    with global_map_subscription(node, joiner.topic("global_map")) as latest:
+        joiner.play(node, records[:30])  # the front-end starts again: sequence numbers from 1
+        wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == 30, 120.0, joiner, latest=latest)
+    code, output = joiner.stop()
+    assert code == 0, output[-3000:]
+    snapshots = sorted((state_dir / "snapshots").glob("state_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
+    assert snapshots[-1].name == "state_80.npz"  # the clean stop's: 50 records before the reset, 30 after
+    assert all(int(p.stem.split("_")[1]) >= 50 for p in snapshots)  # the new map's only: the old map's are gone
+    for path in snapshots:  # none usable: recovery falls back as far as it can
+        path.write_bytes(b"damaged")
+    joiner = start_joiner(**params)
+    final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == 30, 120.0, joiner)
+    code, output = joiner.stop()
+    assert code == 0, output[-3000:]
+    assert "resumed from an empty map and 30 journal record(s)" in output, output[-3000:]
+    _assert_equals_offline(final, maps[:30], mode)
 
 
 @pytest.mark.parametrize("how", ["initial_map", "load_map"])

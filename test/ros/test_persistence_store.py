@@ -11,6 +11,7 @@ from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner, global_result
 from linear_slam_ros.joiner.snapshot import blob_names, read_snapshot
+from linear_slam_ros.ros.journal import read_journal
 from linear_slam_ros.ros.persistence import SNAPSHOTS_KEPT, StateStore
 from msg_adapters import decode_map, encode_map
 from msg_adapters.bags import bag_parts, deserialize, serialize
@@ -24,7 +25,7 @@ def messages():
 
 
 def _offer_to(joiner):
-    def offer(topic: str, raw: bytes) -> None:
+    def offer(topic: str, raw: bytes, index: int = 0) -> None:
         decoded = decode_map(*bag_parts(deserialize(raw)))
         joiner.offer(decoded.local_map, decoded.seq)
 
@@ -35,8 +36,8 @@ def _session(folder, messages, snapshot_every, mode="online-dc", blob_min_bytes=
     """What the node does: journal each message, offer it, snapshot every ``snapshot_every``; no clean close."""
     store = StateStore(folder) if blob_min_bytes is None else StateStore(folder, blob_min_bytes)
     joiner = Joiner(mode)
-    store.recover(joiner, _offer_to(joiner))
-    journal = store.open_journal()
+    recovery = store.recover(joiner, _offer_to(joiner))
+    journal = store.open_journal(recovery.journal_records)  # as the node opens it
     offer = _offer_to(joiner)
     for raw in messages:
         index = journal.append("local_map", raw, 0)
@@ -102,6 +103,83 @@ def test_a_truncated_journal_tail_is_reported_and_dropped(messages, tmp_path):
     recovery = StateStore(tmp_path).recover(joiner, _offer_to(joiner))
     assert recovery.replayed == 3 and any("journal_0.mcap" in p for p in recovery.problems)
     assert joiner.state.n_joined == 3
+
+
+def test_records_after_a_damaged_earlier_file_keep_their_indices(messages, tmp_path):
+    """Records lost in the middle of the journal do not renumber the later ones: a snapshot's count still says
+    which records it includes, and the next session numbers on after the last record."""
+    _session(tmp_path, messages[:6], snapshot_every=3)  # journal_0: records 0-5; state_3, state_6
+    _session(tmp_path, messages[6:9], snapshot_every=3)  # journal_1: records 6-8; state_9 (state_6 kept)
+    journal_0 = tmp_path / "journal" / "journal_0.mcap"
+    assert [r.index for r in read_journal(tmp_path / "journal").records] == list(range(9))
+    data = journal_0.read_bytes()
+    record_4 = data.find(messages[4])  # records 4 and 5 (and the file's closing summary) lost: a damaged disk
+    journal_0.write_bytes(data[: record_4 - 40])
+    newest = tmp_path / "snapshots" / "state_9.npz"
+    newest.write_bytes(b"garbage")  # and the newest snapshot: state_6 and the records from 6 on are used
+    joiner = Joiner("online-dc")
+    store = StateStore(tmp_path)
+    recovery = store.recover(joiner, _offer_to(joiner))
+    assert recovery.snapshot.name == "state_6.npz" and recovery.replayed == 3 and recovery.journal_records == 9
+    assert joiner.state.n_joined == 9
+    assert global_result(joiner.state).x.tobytes() == global_result(_reference(messages[:9]).state).x.tobytes()
+    assert any("journal_1.mcap: records" in p and "missing before record 6" in p for p in recovery.problems)
+    with store.open_journal(recovery.journal_records) as journal:
+        assert journal.next_index == 9
+
+
+def test_a_reset_is_never_undone_by_recovery(messages, tmp_path):
+    """``mark_start`` before a reset: with its snapshot lost, recovery replays only what came after the reset."""
+    store = StateStore(tmp_path)
+    joiner = _session(tmp_path, messages[:6], snapshot_every=3)  # records 0-5, state_3 and state_6: the old map
+    store.mark_start(6)
+    assert store.snapshots() == []  # the old map's snapshots are gone
+    joiner.reset()
+    journal = store.open_journal(6)
+    for raw in messages[:4]:  # the new map: its sequence numbers start again at 1
+        journal.append("local_map", raw, 0)
+        _offer_to(joiner)("local_map", raw)
+    journal.flush(fsync=True)
+    store.write_snapshot(joiner.save(10))
+    journal.close()
+    (tmp_path / "snapshots" / "state_10.npz").write_bytes(b"garbage")  # the new map's snapshot is lost
+    recovered = Joiner("online-dc")
+    recovery = StateStore(tmp_path).recover(recovered, _offer_to(recovered))
+    assert (recovery.snapshot, recovery.snapshot_records, recovery.replayed, recovery.journal_records) == (None, 6, 4, 10)
+    assert recovered.n_skipped == 0 and recovered.state.n_joined == 4
+    assert global_result(recovered.state).x.tobytes() == global_result(_reference(messages[:4]).state).x.tobytes()
+
+
+def test_a_loaded_state_file_is_where_recovery_starts(messages, tmp_path):
+    """``mark_start`` with the loaded file: with no usable snapshot of the new map, the file is read again."""
+    from linear_slam_ros.joiner.snapshot import write_snapshot
+
+    loaded = tmp_path / "saved.npz"
+    write_snapshot(loaded, _reference(messages[:5]).save())
+    state_dir = tmp_path / "state"
+    _session(state_dir, messages[:3], snapshot_every=2)  # an old map: records 0-2, state_2
+    store = StateStore(state_dir)
+    store.mark_start(3, loaded)
+    joiner = Joiner("online-dc")
+    joiner.restore(read_snapshot(loaded))
+    journal = store.open_journal(3)
+    for raw in messages[5:7]:
+        journal.append("local_map", raw, 0)
+        _offer_to(joiner)("local_map", raw)
+    journal.close()  # a kill before the snapshot of the loaded map: none on disk
+    recovered = Joiner("online-dc")
+    recovery = StateStore(state_dir).recover(recovered, _offer_to(recovered))
+    assert recovery.snapshot == loaded.resolve() and (recovery.replayed, recovery.journal_records) == (2, 5)
+    assert global_result(recovered.state).x.tobytes() == global_result(joiner.state).x.tobytes()
+    loaded.unlink()  # and without it: said, and the map starts empty at the load
+    recovered = Joiner("online-dc")
+    recovery = StateStore(state_dir).recover(recovered, _offer_to(recovered))
+    assert any("the map it started from is lost, starting empty at journal record 3" in p for p in recovery.problems)
+    assert recovery.snapshot is None and recovered.state.n_joined == 0  # messages 6, 7 wait for 1-5 (reorder)
+    (state_dir / "start.json").write_text("{not json")
+    recovered = Joiner("online-dc")
+    recovery = StateStore(state_dir).recover(recovered, _offer_to(recovered))
+    assert any("start.json cannot be read" in p and "from the whole journal" in p for p in recovery.problems)
 
 
 def test_sessions_append_and_the_journal_stays_one_bag(messages, tmp_path):

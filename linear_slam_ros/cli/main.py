@@ -34,10 +34,12 @@ from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.robots import qualify, robot_slots
 from linear_slam_ros.joiner.snapshot import read_snapshot, write_snapshot
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, FoldStrategy, JoinMethod, MapType
+from linear_slam_ros.joining.hold import HeldClosure, without_held
 from linear_slam_ros.joining.islands import maps_within
 from linear_slam_ros.joining.reinit import Reinitialisation, as_joined
 from linear_slam_ros.pose_graph.chunks import edge_maps, graph_from_local_maps, star_local_maps
 from linear_slam_ros.pose_graph.g2o import read_g2o, write_g2o
+from linear_slam_ros.pose_graph.graph import PoseGraph
 from linear_slam_ros.pose_graph.lago import lago
 
 logger = logging.getLogger("linear_slam_ros")
@@ -122,9 +124,24 @@ def _check_formats(formats: Sequence[str], map_type: MapType, dataset: Dataset |
 
 
 def _write_g2o(out_dir: Path, source: Path, dataset: Dataset, joined: LocalMap) -> None:
-    """Write ``graph.g2o``: the input's edges (a g2o file's own, else the local maps') and the joined poses."""
+    """Write ``graph.g2o``: the input's edges (a g2o file's own, else the local maps') and the joined poses.
+
+    Only the poses the result holds are written, with the edges between them: a pose outside the
+    main island, or the target of a loop closure still held, has no estimate (g2o would read the
+    origin as one).
+    """
     graph = read_g2o(source) if source.suffix == ".g2o" else graph_from_local_maps(dataset.maps)
-    write_g2o(out_dir / "graph.g2o", graph, pose_values(joined))
+    poses = pose_values(joined)
+    if not np.isin(graph.pose_ids, list(poses)).all():
+        inside = np.isin(graph.from_ids, list(poses)) & np.isin(graph.to_ids, list(poses))
+        left_out = int(np.count_nonzero(~np.isin(graph.pose_ids, list(poses))))
+        logger.warning("%s: graph.g2o holds the %d poses of the result; %d poses without an estimate (other islands, "
+                       "loop closures still held) and their %d edges are left out", dataset.name, len(poses), left_out,
+                       int(np.count_nonzero(~inside)))
+        graph = PoseGraph.from_edges(graph.from_ids[inside], graph.to_ids[inside], graph.measurements[inside],
+                                     graph.information[inside], np.intersect1d(graph.pose_ids, list(poses)),
+                                     dim=graph.dim, name=graph.name)
+    write_g2o(out_dir / "graph.g2o", graph, poses)
 
 
 @dataclass(frozen=True)
@@ -214,10 +231,20 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     )
     gate = config.gate_probability or None
     strategy_type: Any = type(get_strategy(config.mode, config.map_type))
+    method_name = f"method {config.mode.value!r} with map type {config.map_type.value!r}"
     if gate is not None and strategy_type.marginal is FoldStrategy.marginal:
         raise ConfigError(
-            f"--gate-probability {gate:g}: method {config.mode.value!r} with map type {config.map_type.value!r} "
-            "cannot gate (use 'online-dc' or 'sequential' with map type 'as-is')"
+            f"--gate-probability {gate:g}: {method_name} cannot gate (use 'online-dc' or 'sequential' with map type 'as-is')"
+        )
+    if config.hold_closures and strategy_type.holds is FoldStrategy.holds:
+        raise ConfigError(
+            f"--hold-closures: {method_name} cannot hold loop closures (it cannot tell which poses the map holds: "
+            "use 'online-dc' or 'sequential' with map type 'as-is')"
+        )
+    if refine_too and args.initial_state is not None:
+        raise ConfigError(
+            "refine / join --refine with --initial-state: a saved state holds its joined map, not the local maps it "
+            "was joined from, so their measurements cannot be refined (refine the whole stream instead)"
         )
     gated: list[dict[str, object]] = []
     reinitialised: list[Reinitialisation] = []
@@ -228,11 +255,18 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     sources = read_sources(args.dataset, args.kind, args.robots)
     dataset = sources.dataset
     _check_formats(formats, config.map_type, dataset)
+    if sources.needs_joiner and config.map_type is MapType.AS_IS and strategy_type.seed is FoldStrategy.seed:
+        why = "come from several robots" if args.robots else "skip numbers (lost submaps)"
+        raise ConfigError(
+            f"{dataset.name}: the local maps {why} and are joined as islands, which {method_name} cannot do "
+            "(use 'online-dc' or 'sequential')"
+        )
     pose_formats = [f for f in formats if f != "g2o"]
     run: JoinRun | None = None
     origin = dataset.maps[0].frame_id  # results are written in the frame of the session's first pose
     islands: dict[str, object] = {"n_islands": 1, "island_sizes": [len(dataset.maps)]}
-    held_left = 0  # forward loop closures still held at the end (their pose never reached)
+    held: tuple[HeldClosure, ...] = ()  # forward loop closures still held at the end (their pose never reached)
+    numbers: list[tuple[str, int]] = []  # each map's (robot, sequence number) as offered to the joiner
     fused: list[LocalMap] = []  # what the joins fused (with the gate: what --refine refines, as the node's refiner)
     holding = config.hold_closures or gate is not None
     if args.initial_state is not None or args.save_state is not None or holding or sources.needs_joiner:
@@ -241,10 +275,10 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         with _progress(len(dataset.maps), f"{config.mode.value} {dataset.name}") as bar:
             run, saved = run_joiner(dataset.maps, config.mode, config.map_type, initial, bar.update, gate, gated,
                                     sources.seqs if sources.needs_joiner else None, sources.robots, reinitialised,
-                                    joined_at, config.hold_closures or None, fused)
+                                    joined_at, config.hold_closures or None, fused, numbers)
         origin = saved.state.first_pose_id if saved.state.first_pose_id is not None else origin
         summary = saved.state.islands
-        held_left = len(saved.state.held)
+        held = saved.state.held
         islands = {"n_islands": len(summary), "island_sizes": sorted((i.n_submaps for i in summary), reverse=True)}
         if len(summary) > 1:
             logger.warning("%s: the submaps form %d islands of %s submaps; the results hold the main island (the "
@@ -260,18 +294,21 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         run = join_dataset(dataset, method)
     # each map under the feature ids it was joined with (features the gate re-initialised renamed)
     seen = as_joined(dataset.maps, reinitialised, joined_at, before) if joined_at else list(dataset.maps)
+    if held:  # closures whose pose was never reached were never joined: the objective leaves them out
+        seen = without_held(seen, numbers, held)
     covered = maps_within(run.result, seen) if islands["n_islands"] != 1 else seen
-    gate_keys: dict[str, object] = {}
+    extra_keys: dict[str, object] = {}
     if gate is not None:
-        gate_keys.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
+        extra_keys.update({"gate_probability": gate, "gated": gated, "n_gated": len(gated),
                           "reinitialised": [r.as_dict() for r in reinitialised], "n_reinitialised": len(reinitialised)})
     if holding:
-        gate_keys.update({"hold_closures": True, "n_held": held_left})
+        extra_keys.update({"hold_closures": True, "n_held": len(held)})
+    extra_keys["chi2_submaps"] = len(covered)  # the local maps the χ² is over (not those of an --initial-state)
     if not refine_too:
         in_origin = write_result(args.out, run.result, origin, pose_formats)
         if "g2o" in formats:
             _write_g2o(args.out, sources.path, dataset, in_origin)
-        report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands, **gate_keys}
+        report = {**report_for(run, dataset, chi2(in_origin, covered)), **islands, **extra_keys}
         write_report(args.out, report)
         logger.info(
             "%s: joined %d local maps with %s in %.3f s, chi2 %.3f", dataset.name, run.n_submaps, method.value,
@@ -293,7 +330,7 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
     in_origin = write_result(args.out, refined.map, origin, pose_formats)
     if "g2o" in formats:
         _write_g2o(args.out, sources.path, dataset, in_origin)
-    report = {**report_for(run, dataset, refined.chi2), **islands, **gate_keys}
+    report = {**report_for(run, dataset, refined.chi2), **islands, **extra_keys}
     report.update(
         {
             "linear_chi2": refined.chi2_history[0],
@@ -445,7 +482,8 @@ def build_parser() -> argparse.ArgumentParser:
     p_bench = sub.add_parser("benchmark", help="every dataset with every method; figures to --out", formatter_class=defaults)
     p_bench.add_argument("--datasets-dir", type=Path, default=Path("../shared/datasets"), help="folder of *.tar.xz archives")
     p_bench.add_argument("--out", type=Path, default=Path("out/benchmark"), help="output folder")
-    p_bench.add_argument("--methods", nargs="+", default=[m.value for m in JoinMethod], help="joining methods")
+    p_bench.add_argument("--methods", nargs="+", choices=[m.value for m in JoinMethod], default=[m.value for m in JoinMethod],
+                         help="joining methods")
     p_bench.add_argument("--only", nargs="+", default=None, help="dataset names to run (default: all)")
     p_bench.set_defaults(func=cmd_benchmark)
     return parser

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
 from linear_slam_ros.core.runtime import blas_threads
@@ -311,17 +312,22 @@ def run_benchmark(
 
     With the reference program beside ``datasets_dir`` (:func:`~linear_slam_ros.evaluation.reference.find_program`),
     each dataset is also timed side by side with it (:func:`compare_with_program`).
+
+    Raises:
+        ConfigError: no dataset to run (none in ``datasets_dir``, or none of ``only``).
     """
     methods = list(methods or [m.value for m in JoinMethod])
     out_dir.mkdir(parents=True, exist_ok=True)
     program = find_program(datasets_dir)
     looked_for = datasets_dir.resolve().parent / "reference" / "LinearSLAM"
     logger.info("benchmark: reference program %s", program if program else f"absent ({looked_for})")
+    archives = [a for a in sorted(datasets_dir.glob("*.tar.xz")) if not only or a.name.removesuffix(".tar.xz") in only]
+    if not archives:
+        wanted = f" named {', '.join(only)}" if only else ""
+        raise ConfigError(f"benchmark: no *.tar.xz dataset{wanted} in {datasets_dir}")
     entries = []
-    for archive in sorted(datasets_dir.glob("*.tar.xz")):
+    for archive in archives:
         name = archive.name.removesuffix(".tar.xz")
-        if only and name not in only:
-            continue
         t0 = time.perf_counter()
         dataset = read_dataset(archive)
         read_s = time.perf_counter() - t0

@@ -17,7 +17,7 @@ from linear_slam_ros.feature_only.conversion import to_feature_only
 from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.feature_only.precondition import precondition
 from linear_slam_ros.feature_only.refine import feature_residuals, feature_rmse, refine_features
-from linear_slam_ros.joiner.joiner import Joiner, SavedJoiner, global_result
+from linear_slam_ros.joiner.joiner import FIRST_SEQ, Joiner, SavedJoiner, global_result
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.strategy import PER_SUBMAP, JoinMethod, MapType
 from linear_slam_ros.joining.reinit import Reinitialisation
@@ -91,15 +91,18 @@ def run_joiner(
     joined_at: list[int | None] | None = None,
     hold_closures: bool | None = None,
     fused: list[LocalMap] | None = None,
+    numbers: list[tuple[str, int]] | None = None,
 ) -> tuple[JoinRun, SavedJoiner]:
     """Join ``maps`` through the node's state machine (:class:`Joiner`), from a saved state or from scratch.
 
     The maps get the sequence numbers that follow the saved state's (1, 2, ... from scratch), so
-    the saved result can be continued by the node or by another run, unless ``seqs`` gives each
-    map's number in its robot's stream (``robots``: each map's robot, ``""`` for one robot); numbers
-    that are skipped are lost submaps, and the streams are complete: every gap is skipped at the
-    end (:meth:`Joiner.flush`) and the maps after it start islands. Timing is per submap. With
-    ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
+    the saved result can be continued by the node or by another run; ``seqs`` gives each map's
+    number in its robot's stream instead (``robots``: each map's robot, ``""`` for one robot;
+    after a saved state, each robot's first map takes the number that follows the state's and
+    the others keep their distance to it); numbers that are skipped are lost submaps, and the
+    streams are complete: every gap is skipped at the end (:meth:`Joiner.flush`) and the maps
+    after it start islands. ``numbers`` receives each map's ``(robot, sequence number)`` as
+    offered. Timing is per submap. With ``gate_probability`` the χ² gate runs before each join; its decisions are appended to
     ``gated`` (:meth:`GateRecord.as_dict`) and are not errors, and the features it re-initialised
     to ``reinitialised``; ``joined_at`` receives each map's place in the join order (``None``: not
     joined), to score the result with :func:`~linear_slam_ros.joining.reinit.as_joined`.
@@ -126,13 +129,24 @@ def run_joiner(
     joiner.on_join = lambda robot, seq: order.__setitem__((robot, seq), joiner.state.n_joined)
     if fused is not None:
         joiner.on_fused = lambda robot, seq, maps: fused.extend(maps)
-    first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
+    who = list(robots) if robots is not None else [""] * len(maps)
+    if seqs is None:
+        first_seq = joiner.state.next_seq if joiner.state.next_seq is not None else 1
+        offered = [(robot, first_seq + i) for i, robot in enumerate(who)]
+    elif initial is None:
+        offered = list(zip(who, seqs, strict=True))
+    else:  # each robot's first map takes the number after the saved state's; the gaps stay
+        first = {robot: min(s for r, s in zip(who, seqs, strict=True) if r == robot) for robot in set(who)}
+        after = {robot: joiner.state.stream(robot).next_seq or FIRST_SEQ for robot in set(who)}
+        offered = [(robot, after[robot] + seq - first[robot]) for robot, seq in zip(who, seqs, strict=True)]
+    if numbers is not None:
+        numbers.extend(offered)
     strategy = joiner.state.strategy
     tune_allocator(strategy.mmap_threshold)
     with blas_threads(strategy.blas_threads):
         start = time.perf_counter()
-        for i, m in enumerate(maps):
-            joiner.offer(m, seqs[i] if seqs is not None else first_seq + i, robots[i] if robots is not None else "")
+        for m, (robot, seq) in zip(maps, offered, strict=True):
+            joiner.offer(m, seq, robot)
             if progress is not None:
                 progress(1)
         joiner.flush()
@@ -148,8 +162,7 @@ def run_joiner(
     if reinitialised is not None:
         reinitialised.extend(joiner.reinitialised)
     if joined_at is not None:
-        joined_at.extend(order.get((robots[i] if robots is not None else "", seqs[i] if seqs is not None else first_seq + i))
-                         for i in range(len(maps)))
+        joined_at.extend(order.get(number) for number in offered)
     return run, joiner.save()
 
 

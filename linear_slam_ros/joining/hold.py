@@ -23,7 +23,7 @@ the ungated run's even when nothing is gated (manhattanOlson3500: χ² 214.12 wi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,4 +144,34 @@ def split_forward(
     return (_select(submap, others) if others else None), tuple(held)
 
 
-__all__ = ["HeldClosure", "split_forward"]
+def without_held(
+    maps: Sequence[LocalMap], numbers: Sequence[tuple[str, int]], held: Sequence[HeldClosure]
+) -> list[LocalMap]:
+    """Return ``maps`` with each closure still held cut out of the submap it came with (exact: it is uncoupled).
+
+    What the joined map's objective covers when a stream ends with closures whose pose was never
+    reached: they were never joined, so the χ² and the refinement leave them out. A submap left
+    with no variable is dropped.
+
+    Args:
+        maps: the local maps, as offered (feature ids as joined: poses are what matters here).
+        numbers: each map's ``(robot, sequence number)``, as offered.
+        held: the closures held at the end (``JoinerState.held``).
+
+    Raises:
+        KeyError: a closure's submap is not among ``numbers``.
+    """
+    where = {number: i for i, number in enumerate(numbers)}
+    targets: dict[int, set[int]] = {}
+    for closure in held:
+        targets.setdefault(where[(closure.robot, closure.seq)], set()).add(closure.target)
+    out: list[LocalMap | None] = list(maps)
+    for i, poses in targets.items():
+        m = maps[i]
+        keep = [j for j, (pid, kind) in enumerate(zip(m.ids.tolist(), m.kinds.tolist(), strict=True))
+                if not (kind == POSE and pid in poses)]
+        out[i] = _select(m, keep) if keep else None
+    return [m for m in out if m is not None]
+
+
+__all__ = ["HeldClosure", "split_forward", "without_held"]

@@ -277,3 +277,85 @@ def test_two_datasets_join_as_two_robots(tmp_path, caplog):
     assert any(k >= 2**32 for k in poses) and 0 in poses  # robot 1's poses, renamed; robot 0's as they were
     assert main(["join", str(halves[0]), str(halves[1]), "--out", str(tmp_path / "x")]) == 2
     assert "2 datasets given: joining several needs --robots" in caplog.text
+
+
+def _subset(folder, target, numbers, offset=0):
+    """Copy ``localmap_<i>.txt`` for ``i`` in ``numbers`` into ``target`` as ``localmap_<i - offset>.txt``."""
+    target.mkdir()
+    for i in numbers:
+        (target / f"localmap_{i - offset}.txt").write_text((folder / f"localmap_{i}.txt").read_text())
+    return target
+
+
+def test_closures_still_held_at_the_end_are_left_out_of_the_chi2_and_the_refinement(tmp_path):
+    """Intel's first 100 submaps hold closures to poses the chain never reaches: they were never joined."""
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    intel = resolve_dataset_dir(dataset_archive("Intel"))
+    first = _subset(intel, tmp_path / "first", range(1, 101))
+    for args in (["join", "--hold-closures"], ["join", "--gate-probability", "0.99999999"], ["refine", "--hold-closures"]):
+        out = tmp_path / "_".join(a.strip("-") for a in args)
+        assert main([args[0], str(first), "--method", "online-dc", *args[1:], "--out", str(out)]) == 0, args
+        report = json.loads((out / "report.json").read_text())
+        assert report["n_held"] > 300 and report["chi2_submaps"] == 100 and report["chi2"] < 1e-6, report  # a tree left
+        assert len(read_rows(out / "poses.txt")) == 101  # the chain's poses: no estimate for the closures' targets
+    islands = _subset(intel, tmp_path / "islands", [1, 3])  # two islands of one submap each, closures held
+    assert main(["join", str(islands), "--method", "online-dc", "--hold-closures", "--out", str(tmp_path / "i")]) == 0
+    report = json.loads((tmp_path / "i" / "report.json").read_text())
+    assert report["n_islands"] == 2 and report["chi2_submaps"] == 1
+
+
+def test_initial_state_then_a_stream_that_skips_numbers_equals_one_run(tmp_path):
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    folder = resolve_dataset_dir(dataset_archive("8240_data_50_local_maps"))
+    whole = _subset(folder, tmp_path / "whole", [i for i in range(1, 51) if i != 30])
+    first = _subset(folder, tmp_path / "first", range(1, 26))
+    rest = _subset(folder, tmp_path / "rest", [i for i in range(26, 51) if i != 30], offset=25)  # 1-4, 6-25
+    common = ["--method", "online-dc"]
+    state = tmp_path / "first.npz"
+    assert main(["join", str(whole), *common, "--out", str(tmp_path / "o_whole")]) == 0
+    assert main(["join", str(first), *common, "--out", str(tmp_path / "o1"), "--save-state", str(state)]) == 0
+    assert main(["join", str(rest), *common, "--out", str(tmp_path / "o2"), "--initial-state", str(state)]) == 0
+    assert (tmp_path / "o2" / "poses.txt").read_text() == (tmp_path / "o_whole" / "poses.txt").read_text()
+    report = json.loads((tmp_path / "o2" / "report.json").read_text())
+    assert report["n_submaps"] == 24 and report["chi2_submaps"] == 24  # the χ² of the maps given only
+
+
+def test_option_combinations_that_cannot_work_exit_2_with_the_reason(tmp_path, caplog):
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    archive = str(dataset_archive("8240_data_50_local_maps"))
+    gap = _subset(resolve_dataset_dir(dataset_archive("8240_data_50_local_maps")), tmp_path / "gap", [1, 2, 4])
+    state = tmp_path / "s.npz"
+    assert main(["join", archive, "--method", "online-dc", "--out", str(tmp_path / "a"), "--save-state", str(state)]) == 0
+    cases = [
+        (["join", str(gap), "--method", "dc"], "the local maps skip numbers (lost submaps) and are joined as islands, "
+                                               "which method 'dc' with map type 'as-is' cannot do"),
+        (["join", archive, archive, "--robots", "--method", "dc"], "the local maps come from several robots"),
+        (["join", archive, "--method", "dc", "--hold-closures"], "--hold-closures: method 'dc' with map type 'as-is' "
+                                                                 "cannot hold loop closures"),
+        (["refine", archive, "--method", "online-dc", "--initial-state", str(state)],
+         "refine / join --refine with --initial-state: a saved state holds its joined map"),
+        (["join", archive, "--method", "online-dc", "--refine", "--initial-state", str(state)], "cannot be refined"),
+        (["benchmark", "--only", "NoSuch", "--datasets-dir", str(tmp_path)], "benchmark: no *.tar.xz dataset named NoSuch"),
+    ]
+    for argv, message in cases:
+        caplog.clear()
+        assert main([*argv, "--out", str(tmp_path / "x")]) == 2, argv
+        assert message in caplog.text, (argv, caplog.text)
+    with pytest.raises(SystemExit) as stop:
+        main(["benchmark", "--methods", "bogus"])
+    assert stop.value.code == 2
+
+
+def test_g2o_output_holds_the_result_s_poses_only(tmp_path, caplog):
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+    from linear_slam_ros.pose_graph.g2o import read_g2o
+
+    gap = _subset(resolve_dataset_dir(dataset_archive("Intel")), tmp_path / "gap", [i for i in range(1, 101) if i != 50])
+    out = tmp_path / "o"
+    assert main(["join", str(gap), "--method", "online-dc", "--format", "reference", "g2o", "--out", str(out)]) == 0
+    graph = read_g2o(out / "graph.g2o")
+    assert sorted(graph.pose_ids.tolist()) == sorted(read_rows(out / "poses.txt"))  # no vertex written at the origin
+    assert "poses without an estimate (other islands, loop closures still held)" in caplog.text

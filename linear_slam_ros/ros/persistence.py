@@ -61,14 +61,15 @@ class Recovery:
     """What :meth:`StateStore.recover` found and did.
 
     Attributes:
-        snapshot: the snapshot restored (``None``: none was usable, or there was none; or the state
-            file the map started from, ``start.json``).
-        snapshot_records: journal records the restored snapshot included (where the map starts).
+        snapshot: the snapshot restored, or with none of the current map usable the state file that
+            map was loaded from (``start.json``); ``None``: neither (the map started empty).
+        snapshot_records: journal records the restored state included (where the map starts when
+            no snapshot was restored).
         replayed: journal records replayed after it.
-        journal_records: journal records the recovered state includes: the index the next record
-            must get at least.
         problems: every problem found (a corrupt snapshot, a truncated journal), one line each.
         seconds: wall time of the recovery, s.
+        journal_records: journal records the recovered state includes: the least index the next
+            record may get.
     """
 
     snapshot: Path | None

@@ -26,9 +26,10 @@ run: setup $(if $(wildcard $(DATASETS)/VicPark_200_local_maps.tar.xz),bags/vicpa
 run-sim: setup
 	$(ACTIVATE) && $(PY) -m linear_slam_ros.ros.demo --sim --out out/sim
 
-## Command two: set up, then run the test suite (slow dataset runs excluded: make test-slow).
+## Command two: set up, then run the test suite (slow dataset runs excluded: make test-slow), on two workers:
+## the tests that start ROS nodes one at a time on one of them, the others on the second (test/ros/conftest.py).
 test: setup
-	$(ACTIVATE) && $(PY) -m pytest -q
+	$(ACTIVATE) && $(PY) -m pytest -q -n 2 --dist loadgroup
 
 test-slow: setup
 	$(ACTIVATE) && $(PY) -m pytest -q -m slow

@@ -203,6 +203,15 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
     return joined_state.with_stream(robot, next_seq=seq + 1, last_seq=seq, chain=target)
 
 
+def _holds_any(strategy: AnyStrategy, joined: Any, keys: list[int]) -> bool | None:
+    """Whether a strategy state holds any of ``keys``, cheaply (``None``: the strategy cannot tell): online D&C
+    looks at its stack's parts once for all keys, the others are asked key by key."""
+    if isinstance(joined, OnlineDCState):
+        return online_dc_holds(joined, np.asarray(keys, dtype=np.int64))
+    answers = [strategy.holds(joined, k) for k in keys]
+    return None if None in answers else any(answers)
+
+
 def _linked(
     state: JoinerState, chains: list[Chain], target: int, submap: LocalMap, robot: str
 ) -> tuple[list[Chain], tuple[Stream, ...], int]:
@@ -216,7 +225,7 @@ def _linked(
         return chains, streams, target
     strategy = state.strategy
     labels = [c.island for c in chains]
-    chains = link_islands(chains, target, submap, strategy.result, CACHE)
+    chains = link_islands(chains, target, submap, strategy.result, CACHE, lambda joined, keys: _holds_any(strategy, joined, keys))
     if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
         active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
         chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
@@ -762,22 +771,27 @@ class Joiner:
             return []
         _ = self._progress_at[robot]  # a new robot's stream starts its clock now
         if seq > self.expected_of(robot):
+            if not self._pending[robot]:  # the gap holds the stream up from now (not from its last join: an idle
+                self._progress_at[robot] = self.clock()  # robot's late submap would be given up at once)
             self._pending[robot][seq] = submap
             self._pending_bytes += submap.nbytes
             return self._relieve(robot)
         return self._join(submap, seq, robot) + self._drain(robot)
 
-    def expire(self) -> list[int]:
+    def expire(self) -> list[tuple[str, int]]:
         """Skip gaps that have held a stream up for ``reorder_timeout`` seconds (call it periodically).
 
+        A gap holds its stream up from the arrival of the first submap that waits behind it (or the
+        stream's last progress since).
+
         Returns:
-            Sequence numbers joined (of all robots).
+            ``(robot, sequence number)`` of each submap joined, in order.
         """
-        joined: list[int] = []
+        joined: list[tuple[str, int]] = []
         for robot in sorted(self._pending):
             idle = self.clock() - self._progress_at[robot]
             if self._pending[robot] and idle >= self.reorder_timeout:
-                joined += self._skip_gap(robot, f"no progress for {idle:.1f} s")
+                joined += [(robot, seq) for seq in self._skip_gap(robot, f"no progress for {idle:.1f} s")]
         return joined
 
     def flush(self) -> list[int]:
@@ -797,10 +811,16 @@ class Joiner:
         return seq - self.expected_of(robot) <= self.reorder_window or seq + 1 in self._pending[robot]
 
     def _relieve(self, robot: str) -> list[int]:
-        """Keep the buffer within its count and byte bounds: skip the gap, else drop the farthest submap."""
+        """Keep ``robot``'s buffer within its count and the buffers within their bytes: skip the gap, else drop
+        the farthest submap.
+
+        Only ``robot``'s buffer is relieved (what is joined is of its stream); the other robots'
+        are, at their next early submap (their bytes may stay above a ``reorder_max_bytes``
+        lowered at run time until then).
+        """
         joined: list[int] = []
         waiting = self._pending[robot]
-        while len(waiting) > self.reorder_window or self._pending_bytes > self.reorder_max_bytes:
+        while waiting and (len(waiting) > self.reorder_window or self._pending_bytes > self.reorder_max_bytes):
             if self._credible(min(waiting), robot):
                 joined += self._skip_gap(robot, f"the reorder buffer holds {len(waiting)} submaps, {self._pending_bytes} bytes")
                 continue

@@ -169,7 +169,7 @@ class JoinerNode(Node):
         self._arrived: dict[int, float] = {}
         self._fresh_pose: list[float] = []
         self._fresh_map: list[float] = []
-        self._pose_seq = 0  # newest submap seq whose pose was published
+        self._pose_seq: dict[str, int] = {}  # each robot's pose last published: submaps joined in its state
         self._data_stamps: dict[int, Stamp] = {}  # message stamps of submaps not joined yet
         self._output_stamp: Stamp | None = None  # the newest joined submap's: the outputs' stamp
         self._poses = PoseTracker()  # the newest pose's exact covariance and the TUM stamps
@@ -331,20 +331,11 @@ class JoinerNode(Node):
             if fresh:
                 self._poses.received(key, submap.end_id)
             joined = [_key(robot, s) for s in self.joiner.offer(submap, seq, robot)]
-            if self._timeline is not None and joined:
-                for s, seconds in zip(joined, self.joiner.join_seconds[-len(joined) :], strict=True):
-                    if s in self._timeline:
-                        self._timeline[s][1] = seconds * 1e3
             self._cpu_seconds["join"] += time.thread_time() - c0
             if record is not None:
                 self._journal_records = record + 1
             if joined:
-                self._version += 1
-                state = self.joiner.state
-                stamps = [self._data_stamps.pop(s, None) for s in joined]
-                self._poses.joined(joined, [self._seconds(s) for s in stamps])
-                if stamps[-1] is not None:
-                    self._output_stamp = stamps[-1]
+                state = self._record_joined(joined)
             self.n_offered += 1
             if self.n_offered % PRUNE_EVERY == 0:
                 self._prune(self._data_stamps, keep_joined=False)
@@ -360,6 +351,20 @@ class JoinerNode(Node):
                 f"joined submap seq {s}: {self.joiner.state.n_joined} joined, last join "
                 f"{self.joiner.join_seconds[-1] * 1e3:.2f} ms"
             )
+
+    def _record_joined(self, joined: list[Any]) -> JoinerState:
+        """Record submaps just joined (keys of :func:`_key`, under the joining lock): their join times, their end
+        poses' stamps, the outputs' stamp; return the state that holds them."""
+        if self._timeline is not None:
+            for s, seconds in zip(joined, self.joiner.join_seconds[-len(joined) :], strict=False):
+                if s in self._timeline:
+                    self._timeline[s][1] = seconds * 1e3
+        self._version += 1
+        stamps = [self._data_stamps.pop(s, None) for s in joined]
+        self._poses.joined(joined, [self._seconds(s) for s in stamps])
+        if stamps[-1] is not None:
+            self._output_stamp = stamps[-1]
+        return self.joiner.state
 
     def _on_fused(self, robot: str, seq: int, maps: tuple[LocalMap, ...]) -> None:
         """Send what a join fused to the refiner: exactly the measurements of the joined map (the gate's splits
@@ -407,10 +412,15 @@ class JoinerNode(Node):
         self._version += 1  # the latched statistics count it: republish
 
     def _on_expire_timer(self) -> None:
-        """Give up a missing sequence number that has held the stream up for ``reorder_timeout`` s."""
+        """Give up a missing sequence number that has held the stream up for ``reorder_timeout`` s; the submaps
+        that wait behind it are joined then, recorded, and their pose published as on arrival."""
         with self._lock:
-            if self.joiner.expire():
-                self._version += 1
+            joined = self.joiner.expire()
+            if not joined:
+                return
+            state = self._record_joined([_key(robot, seq) for robot, seq in joined])
+        for robot in dict.fromkeys(robot for robot, _ in joined):
+            self._publish_pose(state, [_key(r, seq) for r, seq in joined if r == robot], robot)
 
     # ------------------------------------------------------------------ services
 
@@ -443,12 +453,8 @@ class JoinerNode(Node):
             self.joiner.reset()
             self.n_received = 0
             self._version += 1
-            self._arrived.clear()
-            self._pose_seq = 0
-            self._data_stamps.clear()
-            self._output_stamp = None
+            self._forget_submaps()
             self._poses.reset()
-            self._deferred_pose = None
         if self.refiner is not None:  # the refiner process ends (tested) and a fresh one starts
             with self._lock:
                 self._refine_waiting.clear()
@@ -457,6 +463,15 @@ class JoinerNode(Node):
         release_memory()  # the buffers of the cleared map go back to the system
         self._snapshot()  # a resume must not bring the cleared map back
         self._next_publish = 0.0  # late subscribers get the empty map, not the cleared one
+
+    def _forget_submaps(self) -> None:
+        """Forget the per-submap records of the map being replaced (reset or load; under the joining lock)."""
+        self._arrived.clear()
+        self._pose_seq.clear()
+        self._data_stamps.clear()
+        self._output_stamp = None
+        self._deferred_pose = None
+        self._pending_pose.clear()
 
     def _on_save_map(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         with self._lock:
@@ -543,7 +558,8 @@ class JoinerNode(Node):
             if self.store is not None:
                 self.store.mark_start(self._journal_records, path)
             self.joiner.restore(dataclasses.replace(saved, journal_records=self._journal_records))
-            self._poses.unknown()
+            self._forget_submaps()  # the replaced map's: its poses' stamps, its newest pose, its outputs' stamp
+            self._poses.reset()  # the loaded map's poses have no stamp (poses.tum leaves them out)
             self._version += 1
         self.get_logger().info(f"loaded {self.joiner.state.n_joined} submaps from {path}")
         if self.refiner is not None:
@@ -643,7 +659,7 @@ class JoinerNode(Node):
                 self._fresh_pose.append(now - t)
                 if self._timeline is not None and s in self._timeline:
                     self._timeline[s][2] = (now - t) * 1e3
-        self._pose_seq = state.n_joined
+        self._pose_seq[robot] = state.n_joined
 
     def _send_pose(self, pose: np.ndarray, cov: np.ndarray | None, stamp: Time, robot: str = "") -> None:
         """Publish ``robot``'s newest pose (map frame) with its covariance on ``pose`` and, with ``publish_tf``, on ``/tf``."""
@@ -777,7 +793,7 @@ class JoinerNode(Node):
             self._deferred_pose = None  # no pose of this map to publish later either
         if self.config.robots and isinstance(joined, LocalMap) and state.first_pose_id is not None:
             self._send_robot_poses(state, joined, stamp)
-        if newest is not None and state.n_joined >= self._pose_seq:  # not older than the arrivals' pose
+        if newest is not None and state.n_joined >= self._pose_seq.get("", 0):  # not older than the arrivals' pose
             self._send_pose(newest[0], newest[1], stamp)
 
     def _views_wanted(self) -> bool:
@@ -810,9 +826,13 @@ class JoinerNode(Node):
         self._send_views(self._map_views(joined, state, self._stamp_msg()) if joined is not None else None)
 
     def _send_robot_poses(self, state: JoinerState, joined: LocalMap, stamp: Time) -> None:
-        """Publish each robot's newest pose from the global map (several robots: no covariance, README)."""
+        """Publish each robot's newest pose from the global map (several robots: no covariance, README), unless an
+        arrival published a newer one of that robot meanwhile (the map is of an older state)."""
+        with self._lock:
+            published = dict(self._pose_seq)
         for robot, pose in robot_poses(state, joined).items():
-            self._send_pose(pose, None, stamp, robot)
+            if state.n_joined >= published.get(robot, 0):
+                self._send_pose(pose, None, stamp, robot)
 
     def _publish_deferred_pose(self) -> None:
         """Publish the exact covariance of the last global map's newest pose once it is due, if it was skipped."""
@@ -825,7 +845,7 @@ class JoinerNode(Node):
             return
         with self._lock:
             self._poses.set_exact(newest[1], n_joined)
-        if n_joined >= self._pose_seq:  # no arrival has published a newer pose meanwhile
+        if n_joined >= self._pose_seq.get("", 0):  # no arrival has published a newer pose meanwhile
             self._send_pose(newest[0], newest[1], stamp)
 
     def _on_summary_timer(self) -> None:

@@ -174,7 +174,7 @@ def test_a_node_restarted_without_its_state_says_what_its_map_holds(maps):
     for seq, m in rest:
         assert j.offer(m, seq) == []  # waits: seq 1 is expected
     now[0] = 1.5
-    assert j.expire() == [seq for seq, _ in rest]
+    assert j.expire() == [("", seq) for seq, _ in rest]
     assert reasons == ["submaps seq 1..5 never arrived or were rejected (no progress for 1.5 s): skipped"]
     assert _sizes(j) == [(0, len(rest))] and j.state.first_pose_id == maps[5].frame_id  # its map starts at seq 6
     assert j.stats()["n_joined"] == len(rest)
@@ -298,3 +298,21 @@ def test_parts_that_link_only_with_each_other_are_joined_first_and_exactly():
     assert joined.n_vars == len(set(prefix.keys.tolist()) | set(x_map.keys.tolist()) | set(y_map.keys.tolist())
                                 | {2 * prefix.frame_id, 2 * x_map.frame_id}) - 1  # every variable once, but its frame pose
     _assert_exact(joined, truth)  # the renamed features are not in the truth: the rest is exact
+
+
+def test_an_arrival_does_not_form_another_robot_s_map_to_see_whether_it_links(monkeypatch):
+    """Whether a submap shares a variable with another island's chain is asked of the stack's parts: forming
+    that chain's map (it changes at each of its robot's arrivals) cost hundreds of ms an arrival at 300 each."""
+    import linear_slam_ros.joiner.islands as islands_module
+
+    a = noisy_local_maps(make_world(2, 60, 80, np.random.default_rng(1)), np.random.default_rng(2), steps_per_map=3)
+    b = noisy_local_maps(make_world(2, 60, 80, np.random.default_rng(3)), np.random.default_rng(4), steps_per_map=3)
+    b = [m.replace(ids=np.where(m.kinds == FEATURE, m.ids + 10**6, m.ids)) for m in b]  # no common feature
+    formed = []
+    keys = islands_module.IslandCache.keys
+    monkeypatch.setattr(islands_module.IslandCache, "keys", lambda self, *args: formed.append(1) or keys(self, *args))
+    j = Joiner(JoinMethod.ONLINE_DC, defer_above=100)
+    for i, (ma, mb) in enumerate(zip(a, b, strict=True), start=1):
+        j.offer(ma, i, "a")
+        j.offer(qualify(mb, 1), i, "b")
+    assert len(j.state.islands) == 2 and j.state.n_joined == 2 * len(a) and formed == []

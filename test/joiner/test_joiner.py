@@ -177,7 +177,7 @@ def test_a_node_started_mid_stream_moves_to_it_after_the_timeout(maps):
     clock.now = 1.0
     assert j.expire() == []
     clock.now = 2.5
-    assert j.expire() == [500, 501]
+    assert j.expire() == [("", 500), ("", 501)]
     assert "submaps seq 1..499 never arrived or were rejected (no progress for 2.5 s)" in reasons[-1][1]
 
 
@@ -188,8 +188,35 @@ def test_a_gap_that_cannot_fill_is_skipped_after_the_timeout(maps):
     clock.now = 0.5
     assert j.expire() == []
     clock.now = 1.2
-    assert j.expire() == [3]  # 3 starts at pose 6, the map ends at 3: skipped to, it starts an island
+    assert j.expire() == [("", 3)]  # 3 starts at pose 6, the map ends at 3: skipped to, it starts an island
     assert [r for r, _ in reasons] == ["gap"] and len(j.state.islands) == 2
+
+
+def test_after_an_idle_spell_a_gap_is_given_its_full_timeout(maps):
+    """The timeout counts from the first submap that waits behind the gap, not from the stream's last join."""
+    j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=5.0)
+    assert j.offer(maps[0], 1) == [1]
+    clock.now = 60.0  # the robot paused for a minute, then 3 arrives before 2
+    assert j.offer(maps[2], 3) == []
+    clock.now = 60.1
+    assert j.expire() == []  # 2 is 0.1 s late, not 60 s
+    assert j.offer(maps[1], 2) == [2, 3] and reasons == []
+    clock.now = 70.0
+    assert j.offer(maps[4], 5) == []
+    clock.now = 75.5
+    assert j.expire() == [("", 5)] and "no progress for 5.5 s" in reasons[-1][1]
+
+
+def test_a_lowered_byte_bound_with_several_robots_relieves_without_failing(maps):
+    size = maps[3].nbytes
+    j, reasons, _ = _joiner(reorder_window=20, reorder_max_bytes=100 * size)
+    for seq in range(10, 20):  # robot a's early submaps: 10 wait
+        j.offer(maps[3], seq, "a")
+    j.reorder_max_bytes = 2 * size  # lowered at run time (the node's parameter)
+    assert j.offer(maps[3], 50, "b") == []  # b's lone far submap is dropped; a's bytes are a's to relieve: no error
+    assert [r for r, _ in reasons] == ["reorder_buffer_full"] and "robot 'b' submap seq 50 dropped" in reasons[0][1]
+    j.offer(maps[3], 30, "a")  # a's next early submap relieves a's buffer
+    assert j._pending_bytes <= 2 * size
 
 
 def test_the_reorder_buffer_is_bounded_in_count_and_bytes(maps):

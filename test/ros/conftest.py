@@ -15,6 +15,10 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if "/ros/" in str(item.fspath):
             item.add_marker(pytest.mark.ros)
+            # `make test` runs two pytest-xdist workers with --dist loadgroup: the tests that start ROS
+            # nodes all run on one of them, one at a time (their joiner processes need the other core's
+            # share, and their DDS domain is chosen per worker process), the others on the second.
+            item.add_marker(pytest.mark.xdist_group("ros"))
 
 
 @pytest.fixture(scope="session")

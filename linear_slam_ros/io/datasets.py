@@ -240,9 +240,8 @@ def _unpack(archive: Path, cache_dir: Path) -> Path:
                 pass
         if not (scratch / stem).is_dir():
             raise DatasetError(f"{archive} did not unpack to a folder named {stem!r}")
-        if target.exists():  # an earlier, unfinished unpack (no marker)
-            shutil.rmtree(target)
-        (scratch / stem).rename(target)
+        (scratch / stem / marker.name).touch()  # complete before it takes the target's name
+        _move_into_place(scratch / stem, target, marker)
     except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, zlib.error) as exc:
         if isinstance(exc, EOFError):
             reason = "the archive is truncated"
@@ -253,9 +252,25 @@ def _unpack(archive: Path, cache_dir: Path) -> Path:
         raise DatasetError(f"cannot unpack {archive}: {reason}") from None
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    marker.touch()
     return target
 
+
+def _move_into_place(unpacked: Path, target: Path, marker: Path) -> None:
+    """Rename a complete unpacked folder to ``target``, unless another process put a complete one there first.
+
+    Two processes may unpack one archive at once (the test workers, two CLI runs): the rename
+    never replaces a folder another process may be reading. A ``target`` without ``marker`` is an
+    unpack of an earlier version that did not finish: it is removed first.
+    """
+    for _ in range(3):
+        try:
+            unpacked.rename(target)
+            return
+        except OSError:  # the target exists (rename does not replace a non-empty folder)
+            if marker.exists():
+                return  # another process's complete unpack: ours is dropped with the scratch folder
+            shutil.rmtree(target, ignore_errors=True)
+    unpacked.rename(target)
 
 def resolve_dataset_dir(path: str | Path, cache_dir: Path | None = None) -> Path:
     """Return the folder of ``localmap_<i>.txt`` files for a folder or a ``.tar.xz`` archive."""

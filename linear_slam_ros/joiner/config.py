@@ -88,7 +88,10 @@ class JoinerConfig:
     )
     reorder_window: int = _param(100, "early submaps held while waiting for a missing sequence number", bounds=(1, 1_000_000))
     reorder_timeout: float = _param(
-        5.0, "seconds without progress after which a missing sequence number is given up", bounds=(0.01, 86_400.0),
+        5.0,
+        "seconds a missing sequence number may hold the stream up (from the first submap waiting behind it) before it is "
+        "given up",
+        bounds=(0.01, 86_400.0),
     )
     reorder_max_bytes: int = _param(
         256 << 20, "bytes the early submaps waiting in the reorder buffer may hold", bounds=(1 << 20, 1 << 40),

@@ -575,7 +575,8 @@ class Joiner:
         mode: joining method.
         map_type: ``as-is`` or ``feature-only``.
         reorder_window: how many early submaps may wait for a missing one.
-        reorder_timeout: seconds without progress after which a gap is skipped.
+        reorder_timeout: seconds a gap may hold a stream up (from the first submap waiting behind it) before it
+            is skipped.
         reorder_max_bytes: bytes of state and information the reorder buffer may hold.
         clock: monotonic clock of :attr:`reorder_timeout`, s.
         defer_above: joins of more state scalars than this are deferred to ``worker`` (strategies

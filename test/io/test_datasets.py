@@ -195,3 +195,23 @@ def test_format_errors_name_the_file_path(tmp_path):
     (tmp_path / "ds" / "localmap_1.txt").write_text("0 2 1 0 1 0 1 0")
     with pytest.raises(DatasetError, match=r"ds/localmap_1\.txt: n = 2 needs 10 numbers"):
         read_dataset(tmp_path / "ds")
+
+
+def test_an_unpack_never_replaces_a_complete_folder_another_process_is_reading(tmp_path):
+    """Two processes unpacking one archive (two test workers, two CLI runs): the later one keeps the first's
+    folder, which the first may be reading; only a folder without the completion marker is replaced."""
+    from linear_slam_ros.io.datasets import _move_into_place
+
+    target, marker = tmp_path / "d", tmp_path / "d" / ".complete"
+    target.mkdir()
+    (target / "localmap_1.txt").write_text("theirs")
+    marker.touch()
+    ours = tmp_path / "scratch" / "d"
+    ours.mkdir(parents=True)
+    (ours / "localmap_1.txt").write_text("ours")
+    _move_into_place(ours, target, marker)
+    assert (target / "localmap_1.txt").read_text() == "theirs" and ours.exists()  # dropped with the scratch folder
+    marker.unlink()  # an unfinished unpack of an earlier version: replaced
+    (ours / ".complete").touch()
+    _move_into_place(ours, target, marker)
+    assert (target / "localmap_1.txt").read_text() == "ours" and marker.exists() and not ours.exists()

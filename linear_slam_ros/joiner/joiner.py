@@ -38,8 +38,7 @@ from linear_slam_ros.joiner.registry import AnyStrategy, get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.chain import compose
-from linear_slam_ros.joining.divide_conquer import OnlineDCState
-from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap, online_dc_holds
+from linear_slam_ros.joining.gate import GateResult, VarianceFactor, gate_submap
 from linear_slam_ros.joining.hold import HeldClosure, split_forward
 from linear_slam_ros.joining.reinit import Reinitialisation, Relabels
 
@@ -203,15 +202,6 @@ def join_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
     return joined_state.with_stream(robot, next_seq=seq + 1, last_seq=seq, chain=target)
 
 
-def _holds_any(strategy: AnyStrategy, joined: Any, keys: list[int]) -> bool | None:
-    """Whether a strategy state holds any of ``keys``, cheaply (``None``: the strategy cannot tell): online D&C
-    looks at its stack's parts once for all keys, the others are asked key by key."""
-    if isinstance(joined, OnlineDCState):
-        return online_dc_holds(joined, np.asarray(keys, dtype=np.int64))
-    answers = [strategy.holds(joined, k) for k in keys]
-    return None if None in answers else any(answers)
-
-
 def _linked(
     state: JoinerState, chains: list[Chain], target: int, submap: LocalMap, robot: str
 ) -> tuple[list[Chain], tuple[Stream, ...], int]:
@@ -225,7 +215,10 @@ def _linked(
         return chains, streams, target
     strategy = state.strategy
     labels = [c.island for c in chains]
-    chains = link_islands(chains, target, submap, strategy.result, CACHE, lambda joined, keys: _holds_any(strategy, joined, keys))
+    def holds(joined: Any, keys: list[int]) -> bool | None:
+        return strategy.holds(joined, np.asarray(keys, dtype=np.int64))
+
+    chains = link_islands(chains, target, submap, strategy.result, CACHE, holds)
     if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
         active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
         chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
@@ -250,7 +243,8 @@ def hold_step(state: JoinerState, submap: LocalMap, seq: int, robot: str = "") -
         return state, submap
     strategy = state.strategy
     rest, held = split_forward(
-        submap, lambda key: any(strategy.holds(c.joined, key) is not False for c in state.chains), seq, robot
+        submap, lambda key: any(strategy.holds(c.joined, np.array([key], dtype=np.int64)) is not False for c in state.chains),
+        seq, robot,
     )
     return (replace(state, held=state.held + held) if held else state), rest
 
@@ -320,8 +314,10 @@ def gate_step(state: JoinerState, submap: LocalMap, probability: float, robot: s
     if joined is None:  # the first submap, or the first of an island: nothing to compare with
         return GateResult(probability, 0.0, 0, float("inf"), submap=submap, variance_factor=state.variance.value)
     strategy = state.strategy
-    holds = (lambda keys: online_dc_holds(joined, keys)) if isinstance(joined, OnlineDCState) else None
-    result = gate_submap(lambda keys: strategy.marginal(joined, keys), submap, probability, state.variance, holds)
+    result = gate_submap(
+        lambda keys: strategy.marginal(joined, keys), submap, probability, state.variance,
+        lambda keys: strategy.holds(joined, keys) is not False,
+    )
     return relabels.reinitialise(result, submap)
 
 

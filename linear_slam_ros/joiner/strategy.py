@@ -149,10 +149,11 @@ class JoinStrategy(Protocol[StateT, ResultT]):
         """
         ...
 
-    def holds(self, state: StateT, key: int) -> bool | None:
-        """Whether the joined map holds the variable of ``key``, cheaply (no join, no solve).
+    def holds(self, state: StateT, keys: npt.NDArray[np.int64]) -> bool | None:
+        """Whether the joined map holds any of ``keys``, cheaply (no join, no solve).
 
-        ``None`` when the strategy cannot tell cheaply (those that cannot gate).
+        The map's frame pose counts as held: a submap holding it as a variable shares it with the
+        map. ``None`` when the strategy cannot tell cheaply (those that cannot gate).
         """
         ...
 
@@ -213,7 +214,7 @@ class FoldStrategy(Generic[StateT, ResultT]):
         """Return ``None``: this strategy cannot gate (see :meth:`JoinStrategy.marginal`)."""
         return None
 
-    def holds(self, state: StateT, key: int) -> bool | None:
+    def holds(self, state: StateT, keys: npt.NDArray[np.int64]) -> bool | None:
         """Return ``None``: not known cheaply (see :meth:`JoinStrategy.holds`)."""
         return None
 

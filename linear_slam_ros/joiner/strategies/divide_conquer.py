@@ -80,9 +80,9 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
         """
         return online_dc_marginal_by_entries(state, keys, self._entries)
 
-    def holds(self, state: OnlineDCState, key: int) -> bool:
-        """Whether a part of the stack holds the variable of ``key`` (their key sets)."""
-        return online_dc_holds(state, np.array([key], dtype=np.int64))
+    def holds(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> bool:
+        """Whether a part of the stack holds any of ``keys`` (their key sets and frame poses)."""
+        return online_dc_holds(state, keys)
 
 
 class BatchDC(BatchStrategy[LocalMap]):

@@ -9,7 +9,7 @@ import numpy as np
 import numpy.typing as npt
 
 from linear_slam_ros.core.frames import change_frame
-from linear_slam_ros.core.local_map import LocalMap
+from linear_slam_ros.core.local_map import LocalMap, pose_key
 from linear_slam_ros.core.runtime import MMAP_THRESHOLD_REUSE
 from linear_slam_ros.joiner.strategy import FoldStrategy, JoinMethod, MapType, PoseEstimate
 from linear_slam_ros.joining.chain import chain_end_pose
@@ -78,6 +78,10 @@ class Sequential(FoldStrategy[SequentialState, LocalMap]):
         """Return the marginal of ``keys`` from the covariance form: ``S_cc = Q_c S~_cc Q_c^T``, O(c^2)."""
         return None if state.global_map is None else Marginal.of_covariance_map(state.global_map, keys)
 
-    def holds(self, state: SequentialState, key: int) -> bool:
-        """Whether the global map holds the variable of ``key`` (its key set)."""
-        return state.global_map is not None and key in state.global_map.key_set
+    def holds(self, state: SequentialState, keys: npt.NDArray[np.int64]) -> bool:
+        """Whether the global map holds any of ``keys`` (its key set and its frame pose)."""
+        m = state.global_map
+        if m is None:
+            return False
+        wanted = np.asarray(keys).tolist()
+        return pose_key(m.frame_id) in wanted or any(map(m.key_set.__contains__, wanted))

@@ -56,3 +56,25 @@ def test_stepping_equals_running_and_steps_are_pure(key, maps):
 def test_running_nothing_is_an_error():
     with pytest.raises(InvalidMapError, match="no joined map: the 0 local maps gave none"):
         get_strategy(JoinMethod.ONLINE_DC).run([])
+
+
+@pytest.mark.parametrize("key", sorted(STRATEGIES, key=str))
+def test_holds_answers_for_the_joined_maps_variables_and_frame_pose(key, maps):
+    strategy = STRATEGIES[key]
+    state = strategy.empty()
+    for m in maps[:7]:
+        state = strategy.step(state, m)
+    as_keys = lambda *ks: np.array(ks, dtype=np.int64)  # noqa: E731
+    if strategy.holds(state, as_keys(2)) is None:  # strategies that cannot tell cheaply say so for every question
+        assert strategy.holds(state, as_keys()) is None
+        assert key not in ((JoinMethod.SEQUENTIAL, MapType.AS_IS), (JoinMethod.ONLINE_DC, MapType.AS_IS))
+        return
+    joined = strategy.result(state)
+    later = {int(k) for m in maps[7:] for k in m.keys} - set(joined.keys.tolist()) - {2 * joined.frame_id}
+    assert later, "the fixture's later submaps see something new"
+    unknown = sorted(later)[:3]
+    assert all(strategy.holds(state, as_keys(int(k))) for k in joined.keys)
+    assert strategy.holds(state, as_keys(2 * joined.frame_id))  # the map's frame pose is no variable, but it is held
+    assert strategy.holds(state, as_keys(*unknown, int(joined.keys[-1])))  # any of them
+    assert not strategy.holds(state, as_keys(*unknown))
+    assert not strategy.holds(state, as_keys())

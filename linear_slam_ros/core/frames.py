@@ -16,12 +16,13 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 
-from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.errors import FrameError, GeometryError
 from linear_slam_ros.core.geometry import angles3, dangles3, pose_size, rot3, rot3_and_drot3, single_rotation, wrap_angle
 from linear_slam_ros.core.local_map import (
     POSE,
     InfoMatrix,
     LocalMap,
+    VariableLayout,
     csr_from_arrays,
     pose_key,
     seed_key_lookup,
@@ -303,6 +304,17 @@ def _slot_lines(info: sp.csr_matrix, back: FrameJacobian, d_t: sp.csr_matrix) ->
     return out
 
 
+def refuse_pitch_lock(moved: VariableLayout) -> None:
+    """Raise :class:`GeometryError` when a changed frame put a 3D pose at pitch +-90 deg.
+
+    Its Euler angles are singular there: the reverse Jacobian loses rank, so the information
+    carried through it would be meaningless (:data:`~linear_slam_ros.core.geometry.PITCH_LOCK_COS`).
+    """
+    fault = moved.pitch_lock_fault()
+    if fault is not None:
+        raise GeometryError(fault)
+
+
 def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     """Re-express a map in the frame of its pose ``new_frame_id`` (eqs. 18-21).
 
@@ -312,6 +324,7 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
 
     Raises:
         FrameError: ``new_frame_id`` is not a pose variable of the map.
+        GeometryError: a 3D pose would have pitch +-90 deg in the new frame (:func:`refuse_pitch_lock`).
     """
     if new_frame_id == local_map.frame_id:
         return local_map
@@ -330,6 +343,7 @@ def change_frame(local_map: LocalMap, new_frame_id: int) -> LocalMap:
     ids = local_map.ids.copy()
     ids[slot] = local_map.frame_id
     moved = local_map.replace(frame_id=int(new_frame_id), ids=ids, x=x_new, info=info)  # same kinds: same layout
+    refuse_pitch_lock(moved)
     old_key = pose_key(local_map.frame_id)
     keys = local_map.keys.copy()
     keys[slot] = old_key

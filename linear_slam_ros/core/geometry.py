@@ -21,6 +21,8 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from linear_slam_ros.core.errors import GeometryError
+
 FloatArray = npt.NDArray[np.float64]
 
 TWO_PI = 2.0 * np.pi
@@ -147,12 +149,23 @@ def rot3_and_drot3(angles: FloatArray) -> tuple[FloatArray, FloatArray]:
 def angles3(rot: FloatArray) -> FloatArray:
     """Return ``(alpha, beta, gamma)``, shape ``(..., 3)``, of rotation matrices ``(..., 3, 3)``.
 
-    ``beta`` lies in ``[-pi/2, pi/2]``; ``alpha`` and ``gamma`` in ``(-pi, pi]``.
+    ``beta`` lies in ``[-pi/2, pi/2]``; ``alpha`` and ``gamma`` in ``(-pi, pi]``. At pitch +-pi/2
+    (gimbal lock: ``cos beta`` below ``sqrt(eps)``, where the general formulas' ``alpha`` and
+    ``gamma`` are rounding noise) only ``gamma -+ alpha`` is defined: ``alpha`` is 0 and ``gamma``
+    takes all of it, so the triple still gives ``rot`` (to ``cos beta``).
     """
+    h = np.hypot(rot[..., 0, 0], rot[..., 0, 1])
     alpha = np.arctan2(rot[..., 0, 1], rot[..., 0, 0])
-    beta = np.arctan2(-rot[..., 0, 2], np.hypot(rot[..., 0, 0], rot[..., 0, 1]))
+    beta = np.arctan2(-rot[..., 0, 2], h)
     gamma = np.arctan2(rot[..., 1, 2], rot[..., 2, 2])
+    locked = h < _SQRT_EPS
+    if np.any(locked):
+        alpha = np.where(locked, 0.0, alpha)
+        gamma = np.where(locked, np.arctan2(np.copysign(1.0, -rot[..., 0, 2]) * rot[..., 1, 0], rot[..., 1, 1]), gamma)
     return np.stack([alpha, beta, gamma], -1)
+
+
+_SQRT_EPS = math.sqrt(np.finfo(np.float64).eps)
 
 
 def dangles3(rot: FloatArray, drot: FloatArray) -> FloatArray:
@@ -168,12 +181,18 @@ def dangles3(rot: FloatArray, drot: FloatArray) -> FloatArray:
 
     Returns:
         ``(..., 3, k)``: column ``j`` is ``d(alpha, beta, gamma)`` along ``drot[..., j, :, :]``.
+
+    Raises:
+        GeometryError: a rotation's pitch is at +-pi/2 (``|cos beta| <`` :data:`PITCH_LOCK_COS`),
+            where the derivative is singular.
     """
     batch = rot.shape[:-2]
     m = np.reshape(rot, batch + (9,))[..., _ANGLE_ENTRIES]  # m00 m01 m02 m12 m22
     m00, m01, m02, m12, m22 = (m[..., i] for i in range(5))
     h2 = m00 * m00 + m01 * m01
     h = np.sqrt(h2)
+    if h.size and not np.min(h) >= PITCH_LOCK_COS:
+        raise GeometryError(pitch_lock_message("a rotation of a change of frame", float(np.min(h))))
     beta_scale = 1.0 / (h2 + m02 * m02)
     cross = m02 * beta_scale / h
     gamma_scale = 1.0 / (m12 * m12 + m22 * m22)
@@ -187,6 +206,31 @@ def dangles3(rot: FloatArray, drot: FloatArray) -> FloatArray:
     jac[..., 2, 4] = -m12 * gamma_scale
     d = np.reshape(drot, drot.shape[:-2] + (9,))[..., _ANGLE_ENTRIES]  # (..., k, 5)
     return jac @ np.swapaxes(d, -1, -2)
+
+
+PITCH_LOCK_COS = 1e-6
+"""Smallest ``|cos beta|`` of a 3D orientation the joins accept (``beta`` the pitch; pitch within about
+1e-6 rad of +-pi/2 is refused). At ``beta = +-pi/2`` the Euler angles (the paper's parameterisation) lose a
+degree of freedom: only ``alpha -+ gamma`` is defined, :func:`dangles3` divides by ``cos^2 beta`` and
+a change of frame would give information of 1e32 and a wrong rotation. At ``|cos beta| = 1e-6`` the
+joins are still exact to 1e-10; a rotation's angles read from its matrix lose ``1e-16 / |cos beta|``
+rad."""
+
+
+def pitch_lock_index(angles: FloatArray) -> int | None:
+    """Return the first row of ``(m, 3)`` Euler angles ``(alpha, beta, gamma)`` whose pitch is at the lock
+    (``|cos beta| < PITCH_LOCK_COS``), or None."""
+    bad = np.flatnonzero(~(np.abs(np.cos(angles[:, 1])) >= PITCH_LOCK_COS))
+    return int(bad[0]) if bad.size else None
+
+
+def pitch_lock_message(what: str, cos_beta: float) -> str:
+    """Return why ``what``'s orientation cannot be joined: its pitch is at the Euler angles' singularity."""
+    return (
+        f"{what} has pitch at +-90 deg (|cos beta| = {cos_beta:.6g}, below {PITCH_LOCK_COS:g}): Euler angles are "
+        "singular there (gimbal lock), so it cannot be joined; express the map in the frame of a pose that is not "
+        "pitched by 90 deg from it"
+    )
 
 
 _ANGLE_ENTRIES = np.array([0, 1, 2, 5, 8])

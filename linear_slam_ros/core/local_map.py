@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -23,8 +24,8 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.core.geometry import angle_size, point_size, pose_size, wrap_angle
+from linear_slam_ros.core.errors import InvalidMapError, SolverError
+from linear_slam_ros.core.geometry import angle_size, pitch_lock_index, pitch_lock_message, point_size, pose_size, wrap_angle
 from linear_slam_ros.core.limits import (
     InputLimits,
     beyond_message,
@@ -33,6 +34,7 @@ from linear_slam_ros.core.limits import (
     information_diagonal_fault,
     limits_or_default,
 )
+from linear_slam_ros.core.solvers import symmetric_splu
 
 logger = logging.getLogger(__name__)
 
@@ -325,6 +327,13 @@ class VariableLayout:
             return np.arange(self.state_dim, dtype=np.int64)
         return scalar_indices(self.offsets, self.sizes, var_indices)
 
+    def pitch_lock_fault(self) -> str | None:
+        """Return why the first 3D pose at the Euler angles' singularity (pitch +-90 deg in this map's
+        frame) cannot be joined, or None (:func:`pitch_lock_fault`)."""
+        if self.dim != 3:
+            return None
+        return pitch_lock_fault(self.name, self.frame_id, self.x, self.angle_index, self.pose_ids)
+
     def pose(self, pose_id: int) -> FloatArray:
         """Return a copy of pose ``pose_id`` (``(3,)`` or ``(6,)``); the frame pose is the origin."""
         if pose_id == self.frame_id:
@@ -477,10 +486,11 @@ class LocalMap(VariableLayout):
         """Check the part of :meth:`validate` that is about numbers, for a map whose structure is right.
 
         The estimate must be finite with pose angles within ``max_angle`` and coordinates within
-        ``max_coordinate``, and the information must pass :func:`check_information` (with
-        ``blocks``, the ``(m, p, p)`` diagonal blocks of a block-diagonal information already known
-        symmetric and positive definite: :func:`check_block_diagonal_information`, from the blocks
-        alone).
+        ``max_coordinate``, 3D poses off the Euler angles' singularity (pitch not within about 1e-6 rad
+        of +-pi/2: :data:`~linear_slam_ros.core.geometry.PITCH_LOCK_COS`), and the information must
+        pass :func:`check_information` (with ``blocks``, the ``(m, p, p)`` diagonal blocks of a
+        block-diagonal information already known symmetric and positive definite:
+        :func:`check_block_diagonal_information`, from the blocks alone).
 
         Raises:
             InvalidMapError: the first fault, naming the map and the state entry.
@@ -496,6 +506,9 @@ class LocalMap(VariableLayout):
             if i is not None:
                 where = f"{what} at state index {i} ({self._describe_index(i)})"
                 raise InvalidMapError(f"{who}: {beyond_message(where, float(self.x[i]), limit_name, lim)}")
+        fault = self.pitch_lock_fault()
+        if fault is not None:
+            raise InvalidMapError(f"local {fault}")
         if blocks is None:
             check_information(self.info, who, lim, self._describe_index)
         else:
@@ -529,6 +542,25 @@ def _trusted_map(
 ) -> LocalMap:
     """Unpickle a :class:`LocalMap` (:meth:`LocalMap.__reduce__`): it was valid when pickled."""
     return LocalMap.trusted(dim, frame_id, end_id, ids, kinds, x, info, name)
+
+
+def pitch_lock_fault(name: str, frame_id: int, x: FloatArray, angle_index: IntArray, pose_ids: IntArray) -> str | None:
+    """Return why the first 3D pose at the Euler angles' singularity cannot be joined, or None.
+
+    Args:
+        name: the map's name; ``frame_id``: the pose whose frame ``x`` is in.
+        x: the state vector; ``angle_index``: ``(m_poses, 3)`` state indices of each pose's
+            ``(alpha, beta, gamma)``; ``pose_ids``: ``(m_poses,)`` the poses' ids, in that order.
+
+    A pose is at the singularity when ``|cos beta|`` is below
+    :data:`~linear_slam_ros.core.geometry.PITCH_LOCK_COS` (pitch within about 1e-6 rad of +-pi/2).
+    """
+    i = pitch_lock_index(x[angle_index])
+    if i is None:
+        return None
+    beta = int(angle_index[i, 1])
+    what = f"pose {int(pose_ids[i])} (state index {beta}) in the frame of pose {frame_id}"
+    return f"map {name!r}: {pitch_lock_message(what, abs(math.cos(x[beta])))}"
 
 
 def _describe_key(key: int) -> str:
@@ -588,11 +620,9 @@ def check_information(
     else:
         csc = sp.csc_matrix(info)
         try:
-            lu = spla.splu(csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        except RuntimeError:
-            raise InvalidMapError(f"{who}: information matrix is singular") from None
-        if np.any(lu.U.diagonal() <= 0):
-            raise InvalidMapError(f"{who}: information matrix is not positive definite")
+            lu = symmetric_splu(csc)
+        except SolverError as exc:
+            raise InvalidMapError(f"{who}: {exc}") from None
         condition = float(spla.norm(csc, 1)) * _inverse_one_norm(lu.solve, n)
     fault = condition_fault(condition, _CONDITION_HOW, lim)
     if fault is not None:

@@ -133,15 +133,31 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     if backend == "cholmod":
         raise SolverError("backend 'cholmod' requested but cholespy is not installed")
     try:
-        lu = spla.splu(
-            sp.csc_matrix(matrix),
-            permc_spec="MMD_AT_PLUS_A",
-            diag_pivot_thresh=0.0,
-            options={"SymmetricMode": True},
-        )
-    except RuntimeError as exc:
-        raise SolverError(f"sparse LU failed on a {matrix.shape[0]}x{matrix.shape[0]} system: {exc}") from None
-    return lu.solve(rhs)
+        lu = symmetric_splu(matrix)
+    except SolverError as exc:
+        raise SolverError(f"{exc} (size {matrix.shape[0]})") from None
+    return np.asarray(lu.solve(rhs), dtype=np.float64)
+
+
+def symmetric_splu(matrix: FloatArray | sp.spmatrix) -> spla.SuperLU:
+    """Return SuperLU's factorisation of a symmetric ``matrix``, refusing one not positive definite.
+
+    A symmetric ordering (``MMD_AT_PLUS_A``) and diagonal pivots only (symmetric mode, pivot
+    threshold 0): the factorisation is ``L D L^T`` in disguise, ``U``'s diagonal is ``D``, and the
+    matrix is positive definite exactly when every entry of it is positive (with partial pivoting,
+    or without this check, an indefinite matrix is factorised and solved without a word).
+
+    Raises:
+        SolverError: ``information matrix is singular`` or ``information matrix is not positive
+            definite``.
+    """
+    try:
+        lu = spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError:
+        raise SolverError("information matrix is singular") from None
+    if not np.all(lu.U.diagonal() > 0):
+        raise SolverError("information matrix is not positive definite")
+    return lu
 
 
 SpdSolve = Callable[[FloatArray], FloatArray]
@@ -177,5 +193,8 @@ def spd_factor(matrix: FloatArray | sp.csr_matrix) -> SpdSolve:
         except _NotPD as exc:
             raise SolverError(f"information matrix of size {n} is not positive definite: {exc}") from None
         return lambda rhs: np.asarray(factor(np.ascontiguousarray(rhs, dtype=np.float64)), dtype=np.float64)
-    kept = sp.csr_matrix(matrix)
-    return lambda rhs: solve_sparse_spd(kept, rhs)
+    if backend == "cholmod":  # cholespy keeps no factor for later right-hand sides
+        kept = sp.csr_matrix(matrix)
+        return lambda rhs: solve_sparse_spd(kept, rhs)
+    lu = symmetric_splu(matrix)
+    return lambda rhs: np.asarray(lu.solve(np.asarray(rhs, dtype=np.float64)), dtype=np.float64)

@@ -30,7 +30,7 @@ import scipy.linalg
 import scipy.linalg.blas
 import scipy.linalg.lapack
 
-from linear_slam_ros.core.errors import FrameError, InvalidMapError, SolverError
+from linear_slam_ros.core.errors import FrameError, GeometryError, InvalidMapError, SolverError
 from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian
 from linear_slam_ros.core.geometry import angle_size, pose_size, wrap_angle
 from linear_slam_ros.core.local_map import (
@@ -38,6 +38,7 @@ from linear_slam_ros.core.local_map import (
     LocalMap,
     StateLayout,
     VariableLayout,
+    pitch_lock_fault,
     pose_key,
     replaced_fields,
     seed_key_lookup,
@@ -309,6 +310,8 @@ class CovarianceMap(VariableLayout):
 
         Raises:
             FrameError: ``new_frame_id`` is not a pose of the map.
+            GeometryError: a 3D pose would have pitch +-90 deg in the new frame (its Euler angles are
+                singular there).
         """
         if new_frame_id == self.frame_id:
             return self
@@ -317,6 +320,13 @@ class CovarianceMap(VariableLayout):
             raise FrameError(f"pose {new_frame_id} is not in the global map (frame pose {self.frame_id})")
         d, p = self.dim, pose_size(self.dim)
         layout = frame_layout(d, self.kinds, slot, self.offsets)
+        x_new = reframe(d, self.x, layout)
+        ids = self.ids.copy()
+        ids[slot] = self.frame_id
+        if d == 3:  # before anything is changed (_in_place)
+            fault = pitch_lock_fault(self.name, new_frame_id, x_new, self.angle_index, ids[self.kinds == POSE])
+            if fault is not None:
+                raise GeometryError(fault)
         jac = reframe_jacobian(d, self.x, layout)
         pos_idx, ang_idx, cols = layout
         n = self.state_dim
@@ -347,10 +357,8 @@ class CovarianceMap(VariableLayout):
         col_s = _sym_columns(cov_t, cols)
         m = col_s + 0.5 * f_tilde @ col_s[cols]
         cov_t = _syr2k(1.0, f_tilde, m, beta=1.0, c=cov_t, lower=1, overwrite_c=True)
-        ids = self.ids.copy()
-        ids[slot] = self.frame_id
         moved = self.replace(
-            frame_id=new_frame_id, ids=ids, x=reframe(d, self.x, layout), cov_tilde=cov_t, rot=rot_new,
+            frame_id=new_frame_id, ids=ids, x=x_new, cov_tilde=cov_t, rot=rot_new,
             ang_blocks=ang_new,
         )
         old_key = pose_key(self.frame_id)

@@ -11,6 +11,7 @@ graph: the message layer carries it beside the graph.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +19,7 @@ import numpy.typing as npt
 import scipy.linalg
 
 from linear_slam_ros.core.errors import GraphError
-from linear_slam_ros.core.geometry import pose_size
+from linear_slam_ros.core.geometry import pitch_lock_index, pitch_lock_message, pose_size
 from linear_slam_ros.core.limits import (
     InputLimits,
     beyond_message,
@@ -125,8 +126,9 @@ class PoseGraph:
         return self.__dict__.get("_checked_with") == limits_or_default(limits)
 
     def _check_measurements(self, limits: InputLimits) -> None:
-        """Raise :class:`GraphError` at the first measured translation beyond ``max_coordinate``
-        or angle beyond ``max_angle``."""
+        """Raise :class:`GraphError` at the first measured translation beyond ``max_coordinate``,
+        angle beyond ``max_angle``, or 3D rotation at the Euler angles' singularity (pitch +-90 deg,
+        :data:`~linear_slam_ros.core.geometry.PITCH_LOCK_COS`)."""
         d = self.dim
         for part, what, limit_name in (
             (self.measurements[:, :d], "translation", "max_coordinate"),
@@ -137,6 +139,10 @@ class PoseGraph:
                 e, c = (int(v) for v in bad[0])
                 where = f"measurement of edge {e} ({self._edge(e)}): {what} {c}"
                 raise GraphError(f"{self.name}: {beyond_message(where, float(part[e, c]), limit_name, limits)}")
+        locked = pitch_lock_index(self.measurements[:, d:]) if d == 3 else None
+        if locked is not None:
+            what = f"measurement of edge {locked} ({self._edge(locked)})"
+            raise GraphError(f"{self.name}: {pitch_lock_message(what, abs(math.cos(self.measurements[locked, 4])))}")
 
     def _check_known_poses(self) -> None:
         """Raise :class:`GraphError` when an edge names a pose missing from ``pose_ids``."""

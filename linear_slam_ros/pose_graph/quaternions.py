@@ -54,12 +54,15 @@ def quaternions_to_angles(dim: int, quats: npt.ArrayLike) -> FloatArray:
         quats: ``(n, 4)`` quaternions ``qx qy qz qw`` (normalised here; any sign).
 
     Returns:
-        ``(n, 1)`` yaw in ``(-pi, pi]`` (2D: the rotation about z; any tilt is ignored) or
+        ``(n, 1)`` yaw in ``(-pi, pi]`` (2D: the heading of the body's x axis in the plane,
+        ``atan2(R10, R00)`` of the active rotation, which is the rotation about z when there is
+        no tilt; the tilt is dropped) or
         ``(n, 3)`` ``alpha beta gamma`` (3D, ranges of :func:`linear_slam_ros.core.geometry.angles3`).
     """
     q = _canonical(np.asarray(quats, dtype=np.float64).reshape(-1, 4))
     if dim == 2:
-        yaw = 2.0 * np.arctan2(q[:, 2], q[:, 3])
+        x, y, z, w = q.T
+        yaw = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
         return np.asarray(wrap_angle(yaw), dtype=np.float64).reshape(-1, 1)
     active = Rotation.from_quat(q).as_matrix()
     return np.asarray(angles3(np.swapaxes(active, -1, -2)), dtype=np.float64)

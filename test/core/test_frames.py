@@ -6,9 +6,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from linear_slam_ros.core.errors import FrameError
+from linear_slam_ros.core.errors import FrameError, GeometryError
 from linear_slam_ros.core.frames import change_frame, frame_layout, reframe, reframe_jacobian, transform_information
+from linear_slam_ros.core.geometry import angles3, rot3
+from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.evaluation.synthetic import exact_local_maps, make_world
+from linear_slam_ros.joining.sequential import CovarianceMap
 
 
 def _map(dim, rng, poses_per_map=4):
@@ -97,3 +100,26 @@ def test_unknown_frame_pose_is_rejected(rng):
     m = _map(2, rng)
     with pytest.raises(FrameError, match="to the frame of pose 999: that pose is not in the map"):
         change_frame(m, 999)
+
+
+def _pitched_map() -> LocalMap:
+    """A 3D map in the frame of pose 0 whose pose 2 is pitched by exactly -90 deg from pose 1 (the
+    map itself is fine: each is about 45 deg from its frame)."""
+    x = np.array([1.0, 0.2, 0.3, 0.3, np.pi / 4, 0.1, 2.0, 0.5, 0.1, 0.3, -np.pi / 4, 0.1])
+    info = np.eye(12) * 100 + np.diag(np.full(11, 1.0), 1) + np.diag(np.full(11, 1.0), -1)
+    # the rotations chosen so that R_2 R_1^T has pitch -90 deg
+    rot_1 = rot3(x[3:6])
+    x[9:12] = angles3(rot3(np.array([0.7, -np.pi / 2, 0.0])) @ rot_1)
+    return LocalMap(3, 0, 2, np.array([1, 2]), np.array([POSE, POSE]), x, info, "pitched")
+
+
+def test_a_change_of_frame_that_puts_a_pose_at_pitch_90_deg_is_refused():
+    m = _pitched_map()
+    with pytest.raises(GeometryError, match=r"map 'pitched': pose 2 \(state index 10\) in the frame of pose 1 has pitch at"):
+        change_frame(m, 1)
+    assert change_frame(m, 2).frame_id == 2  # R_1 R_2^T is not at the lock (Euler pitch is not symmetric)
+    covariance = CovarianceMap.from_local_map(m, name="pitched")
+    before = covariance.cov_tilde.copy()
+    with pytest.raises(GeometryError, match=r"map 'pitched': pose 2 \(state index 10\) in the frame of pose 1 has pitch"):
+        covariance.change_frame(1, _in_place=True)
+    np.testing.assert_array_equal(covariance.cov_tilde, before)  # refused before anything was changed

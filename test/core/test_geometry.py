@@ -117,3 +117,28 @@ def test_from_frame_inverts_to_frame(dim, rng):
     rel = g.relative_pose(dim, frame, pose)
     np.testing.assert_allclose(g.compose_relative(dim, frame, rel), pose, atol=1e-12)
 
+
+
+def test_angles3_at_the_pitch_lock_still_gives_the_rotation(rng):
+    """At pitch +-pi/2 only gamma -+ alpha is defined; a matrix made by products has its four lock
+    entries as independent rounding noise, and the general formulas then read alpha and gamma from
+    that noise (the rotation came back wrong by up to 2.0 before)."""
+    for sign in (1.0, -1.0):
+        for off in (0.0, 1e-15, 1e-12, 1e-9):
+            for _ in range(50):
+                ang = np.array([rng.uniform(-np.pi, np.pi), sign * (np.pi / 2 - off), rng.uniform(-np.pi, np.pi)])
+                other = g.rot3(np.array([rng.uniform(-np.pi, np.pi), rng.uniform(-1.2, 1.2), rng.uniform(-np.pi, np.pi)]))
+                product = (g.rot3(ang) @ other) @ other.T
+                back = g.angles3(product)
+                assert abs(back[1] - ang[1]) < 1e-7
+                np.testing.assert_allclose(g.rot3(back), g.rot3(ang), rtol=0, atol=max(4 * off, 1e-14))
+
+
+def test_dangles3_refuses_the_pitch_lock():
+    near = g.rot3(np.array([0.4, np.pi / 2 - 1e-5, -0.2]))
+    assert np.isfinite(g.dangles3(near, np.ones((1, 3, 3)))).all()  # 1e-5 rad from the lock: fine
+    at = g.rot3(np.array([[0.4, 0.1, -0.2], [0.4, -np.pi / 2, -0.2]]))
+    with pytest.raises(g.GeometryError, match=r"pitch at \+-90 deg \(\|cos beta\| = 6.12323e-17, below 1e-06\)"):
+        g.dangles3(at, np.ones((2, 1, 3, 3)))
+    assert g.pitch_lock_index(np.array([[0.0, 0.3, 0.0], [0.0, np.pi / 2, 0.0]])) == 1
+    assert g.pitch_lock_index(np.array([[0.0, np.pi / 2 - 2e-6, 0.0]])) is None

@@ -62,6 +62,11 @@ def test_sparse_information_is_accepted():
         (dict(info=np.diag([1.0, 1, 1, 1, np.inf])), "non-finite entries"),
         (dict(info=np.eye(5) + np.triu(np.ones((5, 5)), 1)), "not symmetric"),
         (dict(info=np.diag([1.0, 1, 1, 1, -1])), "not positive definite"),
+        (
+            dict(dim=3, kinds=np.array([POSE, POSE], dtype=np.int8), x=np.r_[0, 0, 0, 0.1, 0.2, 0.3, 1, 2, 3, 0.4, -np.pi / 2, 2],
+                 info=np.eye(12)),
+            r"map 'lm': pose 7 \(state index 10\) in the frame of pose 0 has pitch at \+-90 deg \(\|cos beta\| = 6.1\d+e-17",
+        ),
     ],
 )
 def test_each_invariant_is_checked(over, match):
@@ -128,3 +133,9 @@ def test_a_map_pickles_its_fields_and_not_its_caches(info, end_id):
     assert "key_set" not in vars(back) and back.layout is not m.layout
     assert back.key_set == m.key_set
     np.testing.assert_array_equal(back.offsets, m.offsets)
+
+
+def test_a_pose_close_to_the_pitch_lock_is_accepted():
+    x = np.r_[0, 0, 0, 0.1, np.pi / 2 - 2e-6, 0.3, 1, 2, 3, 0.4, -np.pi / 2 + 2e-6, 2]
+    m = _good(dim=3, kinds=np.array([POSE, POSE], dtype=np.int8), x=x, info=np.eye(12))
+    assert m.pitch_lock_fault() is None

@@ -13,7 +13,7 @@ import scipy.sparse as sp
 
 from linear_slam_ros.core import cholmod
 from linear_slam_ros.core.errors import SolverError
-from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd
+from linear_slam_ros.core.solvers import backend_name, solve_dense_spd, solve_sparse_spd, symmetric_splu
 from support import solve_spd
 
 
@@ -42,9 +42,27 @@ def test_not_positive_definite_raises():
     bad = np.diag([1.0, -1.0, 2.0])
     with pytest.raises(SolverError, match="information matrix of size 3 is not positive definite"):
         solve_dense_spd(bad, np.ones(3))
-    for backend in ("libcholmod", "sksparse"):
-        with pytest.raises(SolverError, match="not positive definite"):
-            solve_sparse_spd(sp.csr_matrix(bad), np.ones(3), backend)
+    indefinite = np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # positive diagonal, eigenvalue -1
+    for backend in ("libcholmod", "sksparse", "cholmod", "scipy"):
+        for matrix in (bad, indefinite):
+            with pytest.raises(SolverError, match="not positive definite"):
+                solve_sparse_spd(sp.csr_matrix(matrix), np.ones(3), backend)
+    with pytest.raises(SolverError, match="^information matrix is singular$"):
+        symmetric_splu(sp.csc_matrix(np.diag([1.0, 0.0, 2.0])))
+
+
+def test_the_scipy_fallback_factorises_once_and_refuses_what_is_not_positive_definite(rng, monkeypatch):
+    import linear_slam_ros.core.solvers as solvers
+
+    monkeypatch.setattr(solvers, "backend_name", lambda: "scipy")  # a machine without any CHOLMOD
+    m = _spd(400, rng)  # above DENSE_MAX: the sparse path
+    assert m.shape[0] > solvers.DENSE_MAX
+    b = rng.normal(size=(400, 3))
+    solve = solvers.spd_factor(m)
+    np.testing.assert_allclose(solve(b), solve_dense_spd(m.toarray(), b), atol=1e-9)
+    shifted = (m - sp.identity(400) * 1e3).tocsr()
+    with pytest.raises(SolverError, match="^information matrix is not positive definite$"):
+        solvers.spd_factor(shifted)
 
 
 def test_libcholmod_equals_scikit_sparse_bit_for_bit_and_lets_other_threads_run(rng):

@@ -154,6 +154,10 @@ def test_unknown_line_types_are_listed_in_one_warning(tmp_path, caplog):
         ("EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1 1 0 0\n", "m.g2o:1: EDGE_SE3:QUAT needs 30 values, got 12"),
         ("EDGE_SE2 0 1 1 0 zero 1 0 0 1 0 1\n", "m.g2o:1: could not convert string to float: 'zero'"),
         ("VERTEX_XY 1 0 0\n", "m.g2o has no edges"),
+        (  # pitched by 90 deg about y (active): its information is fine, its Euler angles are not
+            "EDGE_SE3:QUAT 0 1 1 0 0 0 0.7071067811865476 0 0.7071067811865476" + " 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n",
+            r"m.g2o: measurement of edge 0 \(0->1\) has pitch at \+-90 deg .*Euler angles are singular there \(gimbal lock\)",
+        ),
     ],
 )
 def test_malformed_files_name_the_file_and_line(text, match, tmp_path):

@@ -28,6 +28,24 @@ from linear_slam_ros.joining.pairwise import join_pair, to_end_frame
 from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def install_prefix(package: str = "linear_slam_ros") -> Path:
+    """Where colcon installed ``package``: the repository's own ``install/`` (``make setup``), else,
+    in a colcon workspace (``ws/src/linear_slam_ros`` built from ``ws``, its setup sourced), the
+    prefix the ament index names; the repository's path when neither is there (the tests that need
+    it then say to run ``make setup``)."""
+    in_repo = REPO / "install" / package
+    if in_repo.is_dir():
+        return in_repo
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+    except ImportError:
+        return in_repo
+    try:
+        return Path(get_package_prefix(package))
+    except PackageNotFoundError:
+        return in_repo
 DATASETS = Path(os.environ.get("LINEAR_SLAM_DATASETS", REPO.parent / "shared" / "datasets"))
 CACHE = REPO / ".cache" / "datasets"
 BAGS = REPO / "bags"

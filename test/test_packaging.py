@@ -23,12 +23,14 @@ from pathlib import Path
 import pytest
 import yaml
 
+from support import install_prefix
+
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = "linear_slam_ros"
 LAUNCH_FILE = REPO / "launch" / "joiner.launch.py"
 RVIZ_FILE = REPO / "rviz" / "linear_slam.rviz"
 NODE_FILE = REPO / PACKAGE / "ros" / "node.py"
-INSTALL = REPO / "install" / PACKAGE
+INSTALL = install_prefix(PACKAGE)  # the repository's install/ (make setup), or a colcon workspace's
 SHARE = INSTALL / "share" / PACKAGE
 LIB = INSTALL / "lib" / PACKAGE
 
@@ -48,7 +50,8 @@ KNOWN_KEYS: dict[str, str] = {
     "builtin_interfaces": _JAZZY,
     "rcl_interfaces": _JAZZY,
     "rosgraph_msgs": _JAZZY + ": rosgraph_msgs is in ros2/rcl_interfaces",
-    "tf2_ros": _JAZZY + ": tf2_ros is in ros2/geometry2",
+    "tf2_ros_py": _JAZZY + ": tf2_ros_py (the Python module tf2_ros) is in ros2/geometry2",
+    "tf2_msgs": _JAZZY + ": tf2_msgs is in ros2/geometry2",
     "ament_index_python": _JAZZY,
     "launch": _JAZZY,
     "launch_ros": _JAZZY,
@@ -59,13 +62,15 @@ KNOWN_KEYS: dict[str, str] = {
     "python3-tqdm": "rosdep/python.yaml (debian: python3-tqdm; ubuntu '*': python3-tqdm)",
     "python3-pytest": "rosdep/python.yaml (debian/ubuntu: python3-pytest)",
     "python3-yaml": "rosdep/python.yaml (debian/ubuntu: python3-yaml)",
+    "python3-ruamel.yaml": "rosdep/python.yaml (ubuntu: python3-ruamel.yaml)",
     "python3-rosbags-pip": "rosdep/python.yaml, pip rosbags: added by ros/rosdistro PR #37795 (merged 2023-06-26)",
     "python3-scikit-sparse-pip": "rosdep/python.yaml, pip scikit-sparse: added by ros/rosdistro PR #40045 (merged 2024-03-01)",
     "suitesparse": "rosdep/base.yaml (debian/ubuntu: libsuitesparse-dev)",
     "libopenblas-dev": "rosdep/base.yaml: added by ros/rosdistro PR #18700 (merged 2018-08)",
 }
-# Names that look like keys but are not (package.xml must not name them): pip-only packages go to requirements.txt.
-NOT_KEYS = {"python3-threadpoolctl", "python3-cholespy", "python3-rosbags", "python3-scikit-sparse", "python3-mcap"}
+# Names package.xml must not use: pip-only packages that look like keys but are not (they go to requirements.txt),
+# and tf2_ros, a real key, but the C++ library: the Python module tf2_ros comes with tf2_ros_py.
+NOT_KEYS = {"python3-threadpoolctl", "python3-cholespy", "python3-rosbags", "python3-scikit-sparse", "python3-mcap", "tf2_ros"}
 DEPEND_TAGS = ("depend", "build_depend", "build_export_depend", "exec_depend", "test_depend", "buildtool_depend")
 
 # The launch APIs the launch file may import, as documented for Jazzy (docs.ros.org/en/jazzy/p/launch,
@@ -123,7 +128,7 @@ def test_package_xml_depends_on_what_the_package_imports() -> None:
     expected = {"rclpy", "std_msgs", "geometry_msgs", "nav_msgs", "visualization_msgs", "diagnostic_msgs", "std_srvs",
                 "builtin_interfaces", "rcl_interfaces", "ament_index_python", "launch", "launch_ros",
                 "python3-numpy", "python3-scipy", "python3-matplotlib", "python3-tqdm", "python3-rosbags-pip",
-                "suitesparse", "python3-scikit-sparse-pip"}
+                "python3-ruamel.yaml", "suitesparse", "python3-scikit-sparse-pip", "tf2_ros_py", "tf2_msgs"}
     assert expected <= exec_depends, sorted(expected - exec_depends)
 
 

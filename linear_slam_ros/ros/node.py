@@ -123,9 +123,10 @@ class JoinerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         for decl in (*parameter_declarations(), *TF_PARAMETERS):
-            # a string array's default is empty: its type cannot be inferred from it
-            default = Parameter.Type.STRING_ARRAY if isinstance(decl.default, list) else decl.default
-            self.declare_parameter(decl.name, default, _descriptor(decl))
+            if isinstance(decl.default, list):
+                self._declare_string_array(decl)
+            else:
+                self.declare_parameter(decl.name, decl.default, _descriptor(decl))
         # Raises ConfigError, naming the parameter, its value and the allowed values: main() exits with 2.
         config = JoinerConfig.from_mapping({
             d.name: self.get_parameter_or(d.name, Parameter(d.name, value=d.default)).value for d in parameter_declarations()
@@ -244,6 +245,28 @@ class JoinerNode(Node):
         )
 
     # ------------------------------------------------------------------ parameters
+
+    def _declare_string_array(self, decl: ParameterDeclaration) -> None:
+        """Declare a string-array parameter with its (empty) default as a value.
+
+        Its type cannot be inferred from an empty list (rclpy takes ``[]`` for a byte array), and
+        declared by type alone it stays unset when not overridden: ``GetParameters`` (``ros2 param
+        get``, ``ros2 param dump``) then answers nothing at all for a request that names it. So it is
+        declared writable by type, given its default when unset, then made read-only if it is.
+        """
+        descriptor = _descriptor(decl)  # rclpy keeps this object: the final one is a copy
+        read_only = descriptor.read_only
+        descriptor.read_only = False
+        self.declare_parameter(decl.name, Parameter.Type.STRING_ARRAY, descriptor)
+        declared = self.get_parameter_or(decl.name, None)
+        if declared is None or declared.type_ == Parameter.Type.NOT_SET:
+            default = decl.default
+            assert isinstance(default, list)
+            self.set_parameters([Parameter(decl.name, Parameter.Type.STRING_ARRAY, default)])
+        if read_only:
+            final = _descriptor(decl)
+            final.type = Parameter.Type.STRING_ARRAY.value
+            self.set_descriptor(decl.name, final)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         try:

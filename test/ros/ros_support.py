@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from linear_slam_ros.ros.process import loopback_env, stop_process  # imports no rclpy
-from support import committed_bag, dataset_source
+from support import committed_bag, dataset_source, install_prefix
 
 REPO = Path(__file__).resolve().parents[2]
-INSTALL_SETUP = REPO / "install" / "setup.bash"
+INSTALL_SETUP = install_prefix().parent / "setup.bash"  # install/setup.bash of the repository or of a colcon workspace
 
 # DDS stays on loopback, in a domain of this test run (20-59: never the default 0, nor `make`'s
 # 61): the tests never meet another run's nodes.

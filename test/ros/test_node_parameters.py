@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import threading
+import uuid
 from types import SimpleNamespace
 
+import pytest
 from rclpy.parameter import Parameter
 
-from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.joiner.config import JoinerConfig, parameter_declarations
 from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.strategy import JoinMethod
+from linear_slam_ros.ros import node as node_module
 from linear_slam_ros.ros.node import JoinerNode
 
 
@@ -41,3 +44,25 @@ def test_reorder_settings_reach_the_joiner():
     fake = _fake_node(JoinerConfig())
     result = JoinerNode._on_set_parameters(fake, [Parameter("reorder_window", value=7)])  # type: ignore[arg-type]
     assert result.successful and fake.joiner.reorder_window == 7
+
+
+@pytest.mark.parametrize("robots", [None, ["a", "b"]])
+def test_every_parameter_has_a_value_that_the_parameter_services_can_answer(rclpy_session, monkeypatch, robots):
+    """``robots`` was declared by type alone: unset, so ``GetParameters`` (``ros2 param get``/``dump``)
+    answered nothing for any request naming it."""
+    monkeypatch.setattr(node_module, "set_blas_threads", lambda n: None)
+    monkeypatch.setattr(node_module, "tune_allocator", lambda threshold: True)
+    overrides = [] if robots is None else [Parameter("robots", Parameter.Type.STRING_ARRAY, robots)]
+    joiner = node_module.JoinerNode(namespace=f"t{uuid.uuid4().hex[:8]}", parameter_overrides=overrides)
+    try:
+        names = [d.name for d in parameter_declarations()]
+        values = joiner.get_parameters(names)  # raises ParameterUninitializedException for an unset one
+        assert all(p.type_ != Parameter.Type.NOT_SET for p in values)
+        robots_param = joiner.get_parameter("robots")
+        assert robots_param.type_ == Parameter.Type.STRING_ARRAY and robots_param.value == (robots or [])
+        assert joiner.describe_parameter("robots").read_only
+        refused = joiner.set_parameters([Parameter("robots", Parameter.Type.STRING_ARRAY, ["c"])])[0]
+        assert not refused.successful and "read-only" in refused.reason, refused
+        assert list(joiner.config.robots) == (robots or [])
+    finally:
+        joiner.destroy_node()

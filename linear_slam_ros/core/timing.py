@@ -33,6 +33,20 @@ def latency_summary(seconds: Sequence[float]) -> dict[str, float]:
     return {"per_submap_ms_p50": lat.p50_ms, "per_submap_ms_p99": lat.p99_ms, "per_submap_ms_max": lat.max_ms}
 
 
+def reset_peak_rss(clear_refs: Path = Path("/proc/self/clear_refs")) -> bool:
+    """Reset this process's peak resident set size to its current one, so that :func:`peak_rss_mb`
+    reads the peak of what runs next (Linux >= 4.0: ``5`` written to ``clear_refs``).
+
+    Returns:
+        Whether it was reset (False elsewhere: the peak then stays the process's since it started).
+    """
+    try:
+        clear_refs.write_text("5")
+    except OSError:
+        return False
+    return True
+
+
 def peak_rss_mb(status: Path = Path("/proc/self/status")) -> float:
     """Return this process's peak resident set size in MiB.
 

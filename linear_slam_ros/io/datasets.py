@@ -154,24 +154,34 @@ def _garbage_message(text: str, where: str) -> str:
 
 
 def detect_kind(raw: RawLocalMap) -> MapKind:
-    """Detect the map kind from the ids and variable sizes of one parsed map."""
+    """Detect the map kind from the ids and variable sizes of one parsed map.
+
+    A variable listed twice in a row (parallel edges, as Intel's map 61 lists pose 863) spans twice
+    its size, so sizes are read as multiples: 2D when every pose spans a multiple of 3 lines (and
+    every feature of 2), 3D when multiples of 6 (and 3). When both fit (every pose spans 6 lines:
+    one 3D pose or a 2D pose listed twice), 3D.
+    """
     ids = raw.scalar_ids
     starts = np.flatnonzero(np.concatenate([[True], ids[1:] != ids[:-1]]))
     sizes = np.diff(np.concatenate([starts, [ids.size]]))
     group_ids = ids[starts]
-    if np.any(group_ids < 0):
-        pose_sizes = set(sizes[group_ids <= 0].tolist())
-        if pose_sizes == {3}:
-            return MapKind.PF2D
-        if pose_sizes == {6}:
-            return MapKind.PF3D
-        raise DatasetError(f"{raw.name}: pose variables span {sorted(pose_sizes)} lines; expected 3 (2D) or 6 (3D)")
-    all_sizes = set(sizes.tolist())
-    if all_sizes == {3}:
-        return MapKind.PG2D
-    if all_sizes == {6}:
-        return MapKind.PG3D
-    raise DatasetError(f"{raw.name}: cannot tell the map kind from variable sizes {sorted(all_sizes)}")
+    with_features = bool(np.any(group_ids < 0))
+    poses = sizes[group_ids <= 0] if with_features else sizes
+    features = sizes[group_ids > 0] if with_features else sizes[:0]
+    fits = {
+        dim: bool(np.all(poses % (3 * (dim - 1)) == 0) and np.all(features % dim == 0)) for dim in (3, 2)
+    }
+    for dim in (3, 2):  # 3D first: a map of 6-line poses only reads as 3D
+        if fits[dim]:
+            return {(2, False): MapKind.PG2D, (3, False): MapKind.PG3D, (2, True): MapKind.PF2D, (3, True): MapKind.PF3D}[
+                (dim, with_features)
+            ]
+    if with_features:
+        raise DatasetError(
+            f"{raw.name}: pose variables span {sorted(set(poses.tolist()))} lines and features "
+            f"{sorted(set(features.tolist()))}; expected multiples of 3 and 2 (2D) or of 6 and 3 (3D)"
+        )
+    raise DatasetError(f"{raw.name}: cannot tell the map kind from variable sizes {sorted(set(sizes.tolist()))}")
 
 
 def to_local_map(raw: RawLocalMap, kind: MapKind) -> LocalMap:
@@ -359,8 +369,14 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
                 raise DatasetError(f"cannot read {f}: {exc}") from None
             raw = parse_local_map_text(text, f.stem, source=str(f))
             if map_kind is None:
-                map_kind = detect_kind(raw)
-            maps.append(to_local_map(raw, map_kind))
+                map_kind, detected_from = detect_kind(raw), raw.name
+            try:
+                maps.append(to_local_map(raw, map_kind))
+            except DatasetError as exc:
+                if kind is not None:
+                    raise
+                hint = f"kind {map_kind.value} detected from {detected_from}: give the kind if it is another"
+                raise DatasetError(f"{exc} ({hint})") from None
             bar.update()
     assert map_kind is not None  # list_local_map_files returns at least one file
     numbers = local_map_numbers(files)

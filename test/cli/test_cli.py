@@ -339,7 +339,12 @@ def test_option_combinations_that_cannot_work_exit_2_with_the_reason(tmp_path, c
          "refine / join --refine with --initial-state: a saved state holds its joined map"),
         (["join", archive, "--method", "online-dc", "--refine", "--initial-state", str(state)], "cannot be refined"),
         (["benchmark", "--only", "NoSuch", "--datasets-dir", str(tmp_path)], "benchmark: no *.tar.xz dataset named NoSuch"),
+        # one name of two matching: the typo is not dropped silently (nothing is read before the check)
+        (["benchmark", "--only", "A", "VicPark200", "--datasets-dir", str(tmp_path / "ds")],
+         "benchmark: no *.tar.xz dataset named VicPark200"),
     ]
+    (tmp_path / "ds").mkdir()
+    (tmp_path / "ds" / "A.tar.xz").write_bytes(b"")
     for argv, message in cases:
         caplog.clear()
         assert main([*argv, "--out", str(tmp_path / "x")]) == 2, argv

@@ -5,7 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from linear_slam_ros.core.timing import peak_rss_mb
+from linear_slam_ros.core.timing import peak_rss_mb, reset_peak_rss
 
 
 def test_peak_rss_is_the_processs_own_high_water_mark_not_its_parents(tmp_path):
@@ -25,3 +25,15 @@ def test_peak_rss_is_the_processs_own_high_water_mark_not_its_parents(tmp_path):
 
 def test_without_a_status_file_it_falls_back_to_ru_maxrss(tmp_path):
     assert peak_rss_mb(tmp_path / "missing") > 0.0
+
+
+def test_reset_peak_rss_makes_the_peak_that_of_what_runs_next(tmp_path):
+    import numpy as np
+
+    big = np.ones(32 * 2**20)  # 256 MiB of float64, touched
+    before = peak_rss_mb()
+    del big
+    assert reset_peak_rss()
+    after = peak_rss_mb()
+    assert before - after > 200, (before, after)  # the freed quarter gigabyte no longer counts
+    assert not reset_peak_rss(tmp_path / "no" / "clear_refs")  # elsewhere: says it could not

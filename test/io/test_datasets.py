@@ -68,7 +68,7 @@ def test_unknown_sizes_cannot_be_detected():
         detect_kind(parse_local_map_text(text, "localmap_3"))
 
 
-def test_repeated_pose_is_fused_exactly():
+def test_repeated_pose_is_fused_exactly(caplog):
     # pose 5 listed twice (two edges), with information 1 and 3: fused estimate is the weighted mean
     vals = [1.0, 2.0, 0.1, 2.0, 2.0, 0.3]
     info = np.diag([1.0, 1, 1, 3, 3, 3])
@@ -77,6 +77,9 @@ def test_repeated_pose_is_fused_exactly():
     np.testing.assert_array_equal(m.ids, [5])
     np.testing.assert_allclose(m.x, [1.75, 2.0, 0.25])
     np.testing.assert_allclose(m.info_dense(), np.diag([4.0, 4, 4]))
+    # the constant the fused map's objective drops: 1 * 0.75^2 + 3 * 0.25^2 + 1 * 0.15^2 + 3 * 0.05^2
+    assert "localmap_4: fused 1 repeated variable(s) into one each" in caplog.text
+    assert "the objective drops a constant, here 0.78 " in caplog.text
 
 
 def test_invalid_map_in_file_is_rejected(tmp_path):
@@ -215,3 +218,34 @@ def test_an_unpack_never_replaces_a_complete_folder_another_process_is_reading(t
     (ours / ".complete").touch()
     _move_into_place(ours, target, marker)
     assert (target / "localmap_1.txt").read_text() == "ours" and marker.exists() and not ours.exists()
+
+
+def _identity_text(ref: int, ids: list[int]) -> str:
+    n = len(ids)
+    return f"{ref} {n} " + " ".join(f"{i} 0.{k % 10}" for k, i in enumerate(ids)) + " " + " ".join(
+        "1" if r == c else "0" for r in range(n) for c in range(n)
+    )
+
+
+@pytest.mark.parametrize(
+    ("ids", "kind"),
+    [
+        ([1] * 3 + [2] * 3 + [2] * 3, MapKind.PG2D),  # pose 2 listed twice: sizes 3 and 6
+        ([1] * 6 + [2] * 6, MapKind.PG3D),  # 6 lines each: 3D (or 2D poses each listed twice)
+        ([-1] * 6 + [4] * 2, MapKind.PF2D),  # a 2D pose listed twice, a 2D feature
+        ([-1] * 6 + [4] * 3, MapKind.PF3D),
+    ],
+)
+def test_kind_is_detected_with_repeated_variables(ids, kind):
+    assert detect_kind(parse_local_map_text(_identity_text(0, ids), "localmap_1")) is kind
+
+
+def test_a_later_map_that_does_not_fit_the_detected_kind_says_where_the_kind_came_from(tmp_path):
+    (tmp_path / "localmap_1.txt").write_text(_identity_text(0, [1] * 6))  # reads as 3D
+    (tmp_path / "localmap_2.txt").write_text(_identity_text(1, [2] * 3))
+    with pytest.raises(DatasetError, match=r"localmap_2: variable 2 spans 3 lines, a 3DPG pose needs 6 "
+                                           r"\(kind 3DPG detected from localmap_1: give the kind if it is another\)"):
+        read_dataset(tmp_path)
+    assert read_dataset(tmp_path, kind="2DPG").kind is MapKind.PG2D  # pose 1 listed twice in map 1
+    with pytest.raises(DatasetError, match=r"pose variables span \[4\] lines and features \[2\]; expected multiples"):
+        detect_kind(parse_local_map_text(_identity_text(0, [-1] * 4 + [3] * 2), "localmap_1"))

@@ -791,6 +791,25 @@ class Joiner:
                 joined += [(robot, seq) for seq in self._skip_gap(robot, f"no progress for {idle:.1f} s")]
         return joined
 
+    def set_reorder(
+        self, window: int | None = None, timeout: float | None = None, max_bytes: int | None = None
+    ) -> list[tuple[str, int]]:
+        """Change the reorder bounds (``None``: unchanged) and bring every robot's buffer within them now.
+
+        What a lowered bound no longer admits is handled as when the buffer fills (:meth:`offer`):
+        a credible gap is skipped and the submaps behind it joined, else the farthest submap dropped.
+
+        Returns:
+            ``(robot, sequence number)`` of each submap joined, in order.
+        """
+        if window is not None:
+            self.reorder_window = window
+        if timeout is not None:
+            self.reorder_timeout = timeout
+        if max_bytes is not None:
+            self.reorder_max_bytes = max_bytes
+        return [(robot, seq) for robot in sorted(self._pending) for seq in self._relieve(robot)]
+
     def flush(self) -> list[int]:
         """Skip every gap now: the streams are complete (an offline run's end), what is missing never comes.
 
@@ -811,9 +830,8 @@ class Joiner:
         """Keep ``robot``'s buffer within its count and the buffers within their bytes: skip the gap, else drop
         the farthest submap.
 
-        Only ``robot``'s buffer is relieved (what is joined is of its stream); the other robots'
-        are, at their next early submap (their bytes may stay above a ``reorder_max_bytes``
-        lowered at run time until then).
+        Only ``robot``'s buffer is relieved (what is joined is of its stream); :meth:`set_reorder`
+        relieves every robot's.
         """
         joined: list[int] = []
         waiting = self._pending[robot]

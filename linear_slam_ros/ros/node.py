@@ -274,12 +274,14 @@ class JoinerNode(Node):
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.config = changed
-        for p in params:  # publish_rate and summary_period: read by the output thread at each period
-            if p.name in ("reorder_window", "reorder_timeout", "reorder_max_bytes"):
-                setattr(self.joiner, p.name, getattr(changed, p.name))
-            if p.name == "gate_probability":  # from the next submap on (closures held from then on too)
-                with self._lock:
-                    self.joiner.set_gate(changed.gate_probability or None)
+        names = {p.name for p in params}  # publish_rate and summary_period: read by the output thread at each period
+        if names & {"reorder_window", "reorder_timeout", "reorder_max_bytes"}:  # every buffer within them at once
+            self._join_and_publish(lambda: self.joiner.set_reorder(
+                changed.reorder_window, changed.reorder_timeout, changed.reorder_max_bytes
+            ))
+        if "gate_probability" in names:  # from the next submap on (closures held from then on too)
+            with self._lock:
+                self.joiner.set_gate(changed.gate_probability or None)
         return SetParametersResult(successful=True)
 
     def _config_values(self) -> dict[str, Any]:
@@ -437,8 +439,13 @@ class JoinerNode(Node):
     def _on_expire_timer(self) -> None:
         """Give up a missing sequence number that has held the stream up for ``reorder_timeout`` s; the submaps
         that wait behind it are joined then, recorded, and their pose published as on arrival."""
+        self._join_and_publish(self.joiner.expire)
+
+    def _join_and_publish(self, join: Callable[[], list[tuple[str, int]]]) -> None:
+        """Run ``join`` (a joiner call that joins waiting submaps: ``(robot, seq)`` of each) under the lock;
+        record what it joined, and publish each robot's pose, as on arrival."""
         with self._lock:
-            joined = self.joiner.expire()
+            joined = join()
             if not joined:
                 return
             state = self._record_joined([_key(robot, seq) for robot, seq in joined])

@@ -212,11 +212,28 @@ def test_a_lowered_byte_bound_with_several_robots_relieves_without_failing(maps)
     j, reasons, _ = _joiner(reorder_window=20, reorder_max_bytes=100 * size)
     for seq in range(10, 20):  # robot a's early submaps: 10 wait
         j.offer(maps[3], seq, "a")
-    j.reorder_max_bytes = 2 * size  # lowered at run time (the node's parameter)
+    j.reorder_max_bytes = 2 * size  # lowered behind the joiner's back: relieved at the next early submap
     assert j.offer(maps[3], 50, "b") == []  # b's lone far submap is dropped; a's bytes are a's to relieve: no error
     assert [r for r, _ in reasons] == ["reorder_buffer_full"] and "robot 'b' submap seq 50 dropped" in reasons[0][1]
     j.offer(maps[3], 30, "a")  # a's next early submap relieves a's buffer
     assert j._pending_bytes <= 2 * size
+
+
+def test_lowered_reorder_bounds_bring_every_robots_buffer_within_them_at_once(maps):
+    size = maps[3].nbytes
+    j, reasons, _ = _joiner(reorder_window=20, reorder_max_bytes=100 * size)
+    assert j.offer(maps[0], 1, "a") == [1]
+    for seq in range(3, 9):  # a waits for 2: 6 early submaps
+        j.offer(maps[seq - 1], seq, "a")
+    for seq in (40, 50):  # b waits for its first: two lone far ones
+        j.offer(maps[3], seq, "b")
+    assert j.set_reorder(max_bytes=j._pending_bytes) == [] and reasons == []  # still within
+    joined = j.set_reorder(window=2, max_bytes=size + 1)
+    assert joined == [("a", s) for s in range(3, 9)]  # a: 2 given up (3 is credible), 3..8 joined
+    assert [r for r, _ in reasons] == ["gap", "reorder_buffer_full"]  # b: its farthest dropped, 40 waits
+    assert "robot 'b' submap seq 50 dropped" in reasons[1][1] and j.already_handled(40, "b")
+    assert (j.reorder_window, j.reorder_max_bytes, j.reorder_timeout) == (2, size + 1, 5.0)
+    assert j._pending_bytes == size
 
 
 def test_the_reorder_buffer_is_bounded_in_count_and_bytes(maps):

@@ -20,6 +20,7 @@ def _fake_node(config: JoinerConfig) -> SimpleNamespace:
     """What ``JoinerNode._on_set_parameters`` uses of the node: its configuration, joiner and lock."""
     fake = SimpleNamespace(config=config, joiner=Joiner(JoinMethod.ONLINE_DC), _lock=threading.Lock())
     fake._config_values = lambda: JoinerNode._config_values(fake)  # type: ignore[arg-type]
+    fake._join_and_publish = lambda join: JoinerNode._join_and_publish(fake, join)  # type: ignore[arg-type]
     return fake
 
 
@@ -66,3 +67,22 @@ def test_every_parameter_has_a_value_that_the_parameter_services_can_answer(rclp
         assert list(joiner.config.robots) == (robots or [])
     finally:
         joiner.destroy_node()
+
+
+def test_a_lowered_reorder_window_joins_what_waits_and_records_and_publishes_it():
+    import numpy as np
+
+    from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+
+    maps = noisy_local_maps(make_world(2, 24, 20, np.random.default_rng(11)), np.random.default_rng(12), steps_per_map=3)
+    fake = _fake_node(JoinerConfig())
+    recorded: list[list[object]] = []
+    published: list[tuple[object, str]] = []
+    fake._record_joined = lambda keys: recorded.append(keys) or "state"
+    fake._publish_pose = lambda state, keys, robot: published.append((keys, robot))
+    assert fake.joiner.offer(maps[0], 1) == [1]
+    for seq in (3, 4, 5):  # 2 is missing: they wait
+        assert fake.joiner.offer(maps[seq - 1], seq) == []
+    result = JoinerNode._on_set_parameters(fake, [Parameter("reorder_window", value=2)])  # type: ignore[arg-type]
+    assert result.successful and fake.joiner.reorder_window == 2
+    assert recorded == [[3, 4, 5]] and published == [([3, 4, 5], "")]  # as on arrival

@@ -138,6 +138,13 @@ CACHE_FIELDS = frozenset({"layout"})
 # ------------------------------------------------------------------------------------ encoding
 
 
+def _field(value: Any, name: str, lower_triangle: bool) -> Any:
+    """Return a field to write; a matrix kept in its lower triangle gets zeros above it (its upper
+    triangle holds whatever the memory held: two identical runs would write different files)."""
+    field = getattr(value, name)
+    return np.asfortranarray(np.tril(field)) if lower_triangle else field
+
+
 class _Encoder:
     def __init__(self, blobs: BlobStore | None = None) -> None:
         self.arrays: dict[str, npt.NDArray[Any]] = {}
@@ -179,7 +186,8 @@ class _Encoder:
             if name not in CLASSES:
                 raise SnapshotError(f"cannot write a {name}: not a class a state file may hold")
             kept = [f.name for f in dataclasses.fields(value) if f.name not in CACHE_FIELDS]
-            fields = {name_: self.encode(getattr(value, name_)) for name_ in kept}
+            lower = getattr(type(value), "LOWER_TRIANGLE_FIELDS", ())
+            fields = {name_: self.encode(_field(value, name_, name_ in lower)) for name_ in kept}
             return {"__type__": name, "fields": fields}
         raise SnapshotError(f"cannot write a value of type {type(value).__name__} into a state file")
 

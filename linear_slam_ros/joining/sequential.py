@@ -23,6 +23,7 @@ import dataclasses
 import functools
 import logging
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -169,7 +170,8 @@ class CovarianceMap(VariableLayout):
         end_id: the newest end pose (equal to ``frame_id`` between submaps).
         ids, kinds, x: as in :class:`LocalMap`; ``x`` is in the frame of ``frame_id``.
         cov_tilde: ``(n, n)`` Fortran-ordered ``S~``, lower triangle only (the upper one is
-            not kept up to date: symmetric BLAS updates cost half).
+            not kept up to date: symmetric BLAS updates cost half; it holds whatever the memory
+            held, and a state file writes it as zeros: :data:`LOWER_TRIANGLE_FIELDS`).
         rot: ``(d, d)`` common block of ``Q`` for positions and translations.
         ang_blocks: ``(m_poses, a, a)`` blocks of ``Q`` for pose orientations, in state order.
         name: label for messages.
@@ -187,6 +189,9 @@ class CovarianceMap(VariableLayout):
     ang_blocks: FloatArray
     name: str = "global"
     layout: StateLayout = dataclasses.field(default=None, repr=False)  # type: ignore[assignment]
+
+    LOWER_TRIANGLE_FIELDS: ClassVar[tuple[str, ...]] = ("cov_tilde",)
+    """Fields that hold a symmetric matrix in their lower triangle (a state file zeroes the upper one)."""
 
     def __post_init__(self) -> None:
         if self.layout is None:

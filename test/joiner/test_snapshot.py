@@ -168,6 +168,24 @@ def test_fortran_ordered_covariance_keeps_its_order(maps):
     assert back.state.joined.global_map.cov_tilde.flags.f_contiguous
 
 
+def test_the_unused_upper_triangle_of_the_covariance_is_written_as_zeros(maps):
+    """The sequential map keeps S~ in its lower triangle; the upper one holds whatever the memory
+    held (two identical runs differed there, in heap bytes written to the file)."""
+    j = Joiner("sequential")
+    for seq, m in enumerate(maps[:3], start=1):
+        j.offer(m, seq)
+    g = j.state.joined.global_map
+    upper = np.triu_indices(g.cov_tilde.shape[0], 1)
+    junk = np.asfortranarray(g.cov_tilde.copy())
+    junk[upper] = np.nan
+    joined = replace(j.state.joined, global_map=replace(g, cov_tilde=junk))
+    state = replace(j.state, chains=(replace(j.state.chains[0], joined=joined),))
+    written = decode_state(encode_state(state)).joined.global_map.cov_tilde
+    assert written.flags.f_contiguous and np.all(written[upper] == 0.0)
+    np.testing.assert_array_equal(np.tril(written), np.tril(g.cov_tilde))
+    assert np.isnan(junk[upper]).all()  # the state in memory is left as it is
+
+
 def _arrays(path):
     with np.load(path, allow_pickle=False) as npz:
         return {k: npz[k] for k in npz.files}

@@ -54,9 +54,13 @@ def _same(a, b, path="value"):
         for i, (x, y) in enumerate(zip(a, b, strict=True)):
             _same(x, y, f"{path}[{i}]")
     elif hasattr(a, "__dataclass_fields__"):
+        lower = getattr(type(a), "LOWER_TRIANGLE_FIELDS", ())  # only their lower triangle is the value
         for name in a.__dataclass_fields__:
-            if name != "layout":
-                _same(getattr(a, name), getattr(b, name), f"{path}.{name}")
+            x, y = getattr(a, name), getattr(b, name)
+            if name in lower:
+                x, y = np.asfortranarray(np.tril(x)), np.asfortranarray(np.tril(y))
+            if name not in ("layout", "LOWER_TRIANGLE_FIELDS"):
+                _same(x, y, f"{path}.{name}")
     else:
         assert a == b, path
 

@@ -558,12 +558,14 @@ def online_dc_marginal_by_entries(
     """Return the marginal of ``keys`` in the merged online D&C map, reducing each stack entry (the stack not merged).
 
     A deferred join not computed yet counts as its inputs (:func:`~linear_slam_ros.joining.divide_conquer.leaf_entries`):
-    no join is made here that a background worker is making (in the node, every merge of more than
-    100 scalars is deferred), and those inputs, the stack's entries one step before, mostly still
-    have their factorisations in the cache. The marginal is then that of the parts joined one after
-    the other (before, each pending join's inputs were folded into one map first); the pending
-    join's own result, a tree of joins, differs from either by linearisation only (6e-5 relative on
-    a noisy synthetic stream, ``test_gate.py``). The stack's :func:`big_prefix` (its oldest
+    no join is made here that a background worker is making, and those inputs, the stack's entries
+    one step before, mostly still have their factorisations in the cache. The marginal is then that
+    of the parts joined one after the other; the pending join's own result, a tree of joins, differs
+    from it by linearisation (6e-5 relative on a noisy synthetic stream, ``test_gate.py``;
+    centimetres on VicPark200), so the result depends on which merges have landed. The gate
+    therefore makes every pending merge first (:meth:`OnlineDC.marginal
+    <linear_slam_ros.joiner.strategies.divide_conquer.OnlineDC.marginal>`): its decisions are then
+    those of a joiner that merges at once. The stack's :func:`big_prefix` (its oldest
     entries of at least a sixteenth of the stream each) counts as one entry, merged (cached while
     those entries stay). Each entry is reduced to the variables that matter: the requested ones,
     those it shares with another entry, and its end pose (the seam of the next join); the small

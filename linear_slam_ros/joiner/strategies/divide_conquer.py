@@ -75,9 +75,14 @@ class OnlineDC(FoldStrategy[OnlineDCState, LocalMap]):
     def marginal(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> Marginal | None:
         """Return the merged stack's marginal of ``keys``: each entry reduced (its factorisation kept), the small maps joined.
 
-        See :func:`~linear_slam_ros.joining.gate.online_dc_marginal_by_entries`; deferred joins are
-        not forced (their inputs are folded instead).
+        See :func:`~linear_slam_ros.joining.gate.online_dc_marginal_by_entries`. Merges still deferred
+        are made first (or waited for, when the background worker is making them): folded from their
+        inputs instead, the marginal would be linearised in another grouping (centimetres and 0.1% of
+        covariance apart on VicPark200), so the gate's NIS, and the variance factor in the state,
+        would depend on how far the worker had got.
         """
+        for merge in self.pending(state):  # inputs first
+            merge.value()
         return online_dc_marginal_by_entries(state, keys, self._entries)
 
     def holds(self, state: OnlineDCState, keys: npt.NDArray[np.int64]) -> bool:

@@ -229,18 +229,9 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         {"mode": args.method, "map_type": args.map_type, "gate_probability": args.gate_probability,
          "hold_closures": args.hold_closures}, online=False,
     )
-    gate = config.gate_probability or None
+    gate = config.gate_probability or None  # a gate or holding the strategy cannot apply was refused above
     strategy_type: Any = type(get_strategy(config.mode, config.map_type))
     method_name = f"method {config.mode.value!r} with map type {config.map_type.value!r}"
-    if gate is not None and strategy_type.marginal is FoldStrategy.marginal:
-        raise ConfigError(
-            f"--gate-probability {gate:g}: {method_name} cannot gate (use 'online-dc' or 'sequential' with map type 'as-is')"
-        )
-    if config.hold_closures and strategy_type.holds is FoldStrategy.holds:
-        raise ConfigError(
-            f"--hold-closures: {method_name} cannot hold loop closures (it cannot tell which poses the map holds: "
-            "use 'online-dc' or 'sequential' with map type 'as-is')"
-        )
     if refine_too and args.initial_state is not None:
         raise ConfigError(
             "refine / join --refine with --initial-state: a saved state holds its joined map, not the local maps it "

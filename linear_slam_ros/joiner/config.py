@@ -18,10 +18,10 @@ from typing import Any
 
 from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.core.limits import LIMIT_NAMES, NODE_LIMITS, InputLimits
-from linear_slam_ros.joiner.registry import methods
+from linear_slam_ros.joiner.registry import get_strategy, methods
 from linear_slam_ros.joiner.robots import robot_slots
 from linear_slam_ros.joiner.strategies.sequential import SEQUENTIAL_MAX_SCALARS
-from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joiner.strategy import FoldStrategy, JoinMethod, MapType
 
 
 class OutputFrame(enum.StrEnum):
@@ -211,7 +211,33 @@ class JoinerConfig:
                 f"parameter mode={config.mode.value!r} is not allowed with map_type={config.map_type.value!r}: "
                 f"allowed values are {[m.value for m in allowed]}"
             )
+        if not config.map_frame:
+            raise ConfigError("parameter map_frame='' is not a frame id")
+        check_strategy_can(config.mode, config.map_type, config.gate_probability, config.hold_closures)
         return config
+
+
+def check_strategy_can(
+    mode: JoinMethod | str, map_type: MapType | str, gate_probability: float | None, hold_closures: bool | None
+) -> None:
+    """Refuse a gate or held closures that the strategy of ``(mode, map_type)`` would silently not apply.
+
+    Raises:
+        ConfigError: naming the parameter and the strategy.
+    """
+    strategy = get_strategy(mode, map_type)
+    strategy_type: Any = type(strategy)
+    method = f"mode {strategy.method.value!r} with map_type {strategy.map_type.value!r}"
+    if gate_probability and strategy_type.marginal is FoldStrategy.marginal:
+        raise ConfigError(
+            f"parameter gate_probability={gate_probability:g}: {method} cannot gate "
+            "(use 'online-dc' or 'sequential' with map_type 'as-is')"
+        )
+    if hold_closures and strategy_type.holds is FoldStrategy.holds:
+        raise ConfigError(
+            f"parameter hold_closures=True: {method} cannot hold loop closures (it cannot tell which poses the map "
+            "holds: use 'online-dc' or 'sequential' with map_type 'as-is')"
+        )
 
 
 def _convert(f: dataclasses.Field[Any], value: Any) -> Any:

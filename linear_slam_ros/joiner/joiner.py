@@ -21,7 +21,7 @@ from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError
 from linear_slam_ros.core.frames import estimate_in_frame
 from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.core.timing import latency
-from linear_slam_ros.joiner.config import OutputFrame
+from linear_slam_ros.joiner.config import OutputFrame, check_strategy_can
 from linear_slam_ros.joiner.islands import (
     MAIN_ISLAND,
     Chain,
@@ -539,6 +539,16 @@ class SavedJoiner:
     robot_pending: tuple[tuple[str, int, LocalMap], ...] = ()
 
 
+def _check_reorder(window: int | None, timeout: float | None, max_bytes: int | None) -> None:
+    """Raise :class:`ConfigError` naming a reorder bound that cannot work (``None``: not checked)."""
+    if window is not None and (isinstance(window, bool) or not isinstance(window, int) or window < 1):
+        raise ConfigError(f"reorder_window={window!r} must be an integer >= 1 (0 would drop every early submap)")
+    if timeout is not None and not 0.0 < timeout < float("inf"):
+        raise ConfigError(f"reorder_timeout={timeout!r} must be a finite number of seconds > 0")
+    if max_bytes is not None and (isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes < 1):
+        raise ConfigError(f"reorder_max_bytes={max_bytes!r} must be an integer >= 1")
+
+
 def _check_gate(probability: float | None) -> None:
     if probability is not None and not 0.0 <= probability < 1.0:
         raise ConfigError(f"gate_probability={probability!r} must be in [0, 1) (0 or None: no gate)")
@@ -636,8 +646,13 @@ class Joiner:
     def __post_init__(self) -> None:
         if self.max_held < 0:
             raise ConfigError(f"max_held={self.max_held!r} must be >= 0")
+        if self.defer_above is not None and self.defer_above < 0:
+            raise ConfigError(f"defer_above={self.defer_above!r} must be >= 0 (None: no join deferred)")
+        _check_reorder(self.reorder_window, self.reorder_timeout, self.reorder_max_bytes)
         _check_gate(self.gate_probability)
-        self.state = self._scheduled(new_state(JoinMethod(self.mode), MapType(self.map_type)))
+        strategy = get_strategy(self.mode, self.map_type)  # ConfigError: not a method or map type
+        check_strategy_can(strategy.method, strategy.map_type, self.gate_probability, self.hold_closures)
+        self.state = self._scheduled(new_state(strategy.method, strategy.map_type))
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
         CACHE.anchors.clear()  # they place chains of a joiner's map: one joiner per process
 
@@ -651,6 +666,7 @@ class Joiner:
             ConfigError: ``probability`` is not in [0, 1).
         """
         _check_gate(probability)
+        check_strategy_can(self.state.method, self.state.map_type, probability, None)
         self.gate_probability = probability
         self.state = self._scheduled(self.state)
 
@@ -802,6 +818,7 @@ class Joiner:
         Returns:
             ``(robot, sequence number)`` of each submap joined, in order.
         """
+        _check_reorder(window, timeout, max_bytes)
         if window is not None:
             self.reorder_window = window
         if timeout is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.joiner.strategies.divide_conquer import BatchDC, OnlineDC
 from linear_slam_ros.joiner.strategies.feature_only import FeatureBatchDC, FeatureOnlineDC, FeatureSequential
 from linear_slam_ros.joiner.strategies.sequential import Sequential
@@ -30,10 +31,13 @@ def get_strategy(method: JoinMethod | str, map_type: MapType | str = MapType.AS_
     """Return the strategy registered for ``(method, map_type)``.
 
     Raises:
-        ValueError: not a method or map type (the message lists the valid values).
-        KeyError: no strategy for that pair.
+        ConfigError: not a method or map type (the message lists the valid values; a ``ValueError``).
     """
-    return STRATEGIES[(JoinMethod(method), MapType(map_type))]
+    try:
+        return STRATEGIES[(JoinMethod(method), MapType(map_type))]
+    except ValueError as exc:
+        valid = [m.value for m in JoinMethod] if "JoinMethod" in str(exc) else [t.value for t in MapType]
+        raise ConfigError(f"{exc}: valid values are {valid}") from None
 
 
 def methods(map_type: MapType, online_only: bool) -> tuple[JoinMethod, ...]:

@@ -53,8 +53,10 @@ def robot_slots(robots: Sequence[str]) -> dict[str, int]:
     """
     slots: dict[str, int] = {}
     for i, name in enumerate(robots):
-        if not name or not name.replace("_", "a").isalnum() or name[0].isdigit():
-            raise ConfigError(f"robots[{i}]={name!r} is not a robot namespace (letters, digits, '_'; not starting with a digit)")
+        if not name or not name.isascii() or not name.replace("_", "a").isalnum() or name[0].isdigit():
+            raise ConfigError(
+                f"robots[{i}]={name!r} is not a robot namespace (ASCII letters, digits, '_'; not starting with a digit)"
+            )
         if name in slots:
             raise ConfigError(f"robots lists {name!r} twice")
         slots[name] = i

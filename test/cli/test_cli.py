@@ -333,8 +333,10 @@ def test_option_combinations_that_cannot_work_exit_2_with_the_reason(tmp_path, c
         (["join", str(gap), "--method", "dc"], "the local maps skip numbers (lost submaps) and are joined as islands, "
                                                "which method 'dc' with map type 'as-is' cannot do"),
         (["join", archive, archive, "--robots", "--method", "dc"], "the local maps come from several robots"),
-        (["join", archive, "--method", "dc", "--hold-closures"], "--hold-closures: method 'dc' with map type 'as-is' "
-                                                                 "cannot hold loop closures"),
+        (["join", archive, "--method", "dc", "--hold-closures"], "parameter hold_closures=True: mode 'dc' with map_type "
+                                                                 "'as-is' cannot hold loop closures"),
+        (["join", archive, "--method", "online-dc", "--map-type", "feature-only", "--gate-probability", "0.99"],
+         "parameter gate_probability=0.99: mode 'online-dc' with map_type 'feature-only' cannot gate"),
         (["refine", archive, "--method", "online-dc", "--initial-state", str(state)],
          "refine / join --refine with --initial-state: a saved state holds its joined map"),
         (["join", archive, "--method", "online-dc", "--refine", "--initial-state", str(state)], "cannot be refined"),

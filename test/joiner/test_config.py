@@ -44,6 +44,13 @@ def test_declarations_follow_the_config_fields():
         ({"queue_depth": True}, True, r"parameter queue_depth=True must be of type int"),
         ({"map_frame": 3}, True, r"parameter map_frame=3 must be of type str"),
         ({"colour": "red"}, True, r"unknown parameter 'colour'"),
+        ({"map_frame": ""}, True, r"parameter map_frame='' is not a frame id"),
+        ({"robots": ["robót"]}, True, r"robots\[0\]='robót' is not a robot namespace \(ASCII letters"),
+        ({"robots": ["r²"]}, True, r"robots\[0\]='r²' is not a robot namespace"),
+        ({"map_type": "feature-only", "gate_probability": 0.99}, True,
+         r"parameter gate_probability=0.99: mode 'online-dc' with map_type 'feature-only' cannot gate"),
+        ({"map_type": "feature-only", "hold_closures": True}, True,
+         r"parameter hold_closures=True: mode 'online-dc' with map_type 'feature-only' cannot hold loop closures"),
     ],
 )
 def test_invalid_values_name_parameter_value_and_allowed_values(values, online, match):
@@ -53,3 +60,34 @@ def test_invalid_values_name_parameter_value_and_allowed_values(values, online, 
 
 def test_batch_methods_are_allowed_offline():
     assert JoinerConfig.from_mapping({"mode": "dc"}, online=False).mode is JoinMethod.DC
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"mode": "bogus"}, r"'bogus' is not a valid JoinMethod: valid values are \['sequential', 'dc', 'online-dc'\]"),
+        ({"mode": "online-dc", "map_type": "bogus"}, r"'bogus' is not a valid MapType: valid values are \['as-is', "),
+        ({"mode": "online-dc", "reorder_window": 0}, r"reorder_window=0 must be an integer >= 1"),
+        ({"mode": "online-dc", "reorder_timeout": -1.0}, r"reorder_timeout=-1.0 must be a finite number of seconds > 0"),
+        ({"mode": "online-dc", "reorder_max_bytes": -1}, r"reorder_max_bytes=-1 must be an integer >= 1"),
+        ({"mode": "online-dc", "defer_above": -1}, r"defer_above=-1 must be >= 0"),
+        ({"mode": "online-dc", "map_type": "feature-only", "gate_probability": 0.9}, r"cannot gate"),
+    ],
+)
+def test_a_joiner_made_through_the_api_refuses_what_cannot_work(kwargs, match):
+    from linear_slam_ros.joiner.joiner import Joiner
+
+    with pytest.raises(ConfigError, match=match):
+        Joiner(**kwargs)
+
+
+def test_the_gate_cannot_be_turned_on_at_run_time_where_it_cannot_work():
+    from linear_slam_ros.joiner.joiner import Joiner
+
+    j = Joiner("online-dc", "feature-only")
+    with pytest.raises(ConfigError, match="cannot gate"):
+        j.set_gate(0.99)
+    assert j.gate_probability is None
+    with pytest.raises(ConfigError, match=r"reorder_window=0 must be an integer >= 1"):
+        j.set_reorder(window=0)
+    assert j.reorder_window == 100

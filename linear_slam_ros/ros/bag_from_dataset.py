@@ -126,6 +126,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if (args.dataset is None) == (args.synthetic is None):
         ap.error("give either a dataset or --synthetic NAME")
+    if not 1e-3 <= args.rate <= 1e6:  # bag times in int64 nanoseconds: not slower than one message in 1000 s
+        ap.error(f"--rate {args.rate}: must be within [0.001, 1e6] messages a second")
+    if args.maps_per_chunk < 1:
+        ap.error(f"--maps-per-chunk {args.maps_per_chunk}: must be >= 1")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     source = args.dataset if args.synthetic is None else f"synthetic:{args.synthetic}@{args.seed}"
     try:

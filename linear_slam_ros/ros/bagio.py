@@ -46,6 +46,17 @@ def qos(latched: bool) -> Qos:
     )
 
 
+def _check_replaceable_bag(path: Path) -> None:
+    """Raise :class:`DatasetError` unless ``path`` is a bag folder: ``metadata.yaml`` and storage files only."""
+    if not path.is_dir():
+        raise DatasetError(f"{path} exists and is not a bag folder: not replaced")
+    entries = list(path.iterdir())
+    foreign = sorted(p.name for p in entries if p.is_dir() or (p.name != "metadata.yaml" and p.suffix not in (".mcap", ".db3")))
+    if not (path / "metadata.yaml").is_file() or foreign:
+        what = f"it holds {', '.join(foreign[:3])}" if foreign else "it has no metadata.yaml"
+        raise DatasetError(f"{path} exists and is not a bag ({what}): not replaced; give another --out or remove it")
+
+
 def write_messages(
     path: Path, records: Iterable[tuple[str, int, Encoded | bytes]], latched: set[str] | None = None, overwrite: bool = False,
     custom_data: Mapping[str, str] | None = None,
@@ -53,12 +64,19 @@ def write_messages(
     """Write ``(topic, time_ns, message)`` records to an MCAP rosbag2 bag; return the count.
 
     Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes);
-    ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml).
+    ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml). With
+    ``overwrite``, a bag already at ``path`` is replaced; anything else there is never removed.
+
+    Raises:
+        DatasetError: ``path`` exists (without ``overwrite``), or is not a bag (a file, or a folder
+            without ``metadata.yaml`` or with anything but the bag's own files: a mistyped ``--out``
+            must not delete a user's folder).
     """
     path = Path(path)
     if path.exists():
         if not overwrite:
             raise DatasetError(f"bag {path} exists; remove it first")
+        _check_replaceable_bag(path)
         shutil.rmtree(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)

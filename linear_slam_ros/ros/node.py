@@ -25,6 +25,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -228,7 +229,9 @@ class JoinerNode(Node):
         # The executor (single-threaded: main) takes the arrivals and the services; the outputs, the
         # snapshots and the summary run on their own thread (README, "Scale").
         self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_timer(0.25, self._on_expire_timer)
+        # on the steady clock: reorder_timeout is measured with time.monotonic, and with use_sim_time a ROS-clock
+        # timer stops with /clock, so submaps waiting behind a lost number were never joined once a bag ended
+        self.expire_timer = self.create_timer(0.25, self._on_expire_timer, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.create_service(Trigger, "~/save_map", self._on_save_map)
         self.create_service(Trigger, "~/load_map", self._on_load_map)
         # one publication at a time; ~/reset and ~/load_map wait for one under way (it holds the old map)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 import uuid
 from types import SimpleNamespace
 
@@ -86,3 +87,28 @@ def test_a_lowered_reorder_window_joins_what_waits_and_records_and_publishes_it(
     result = JoinerNode._on_set_parameters(fake, [Parameter("reorder_window", value=2)])  # type: ignore[arg-type]
     assert result.successful and fake.joiner.reorder_window == 2
     assert recorded == [[3, 4, 5]] and published == [([3, 4, 5], "")]  # as on arrival
+
+
+def test_the_reorder_timeout_runs_on_the_steady_clock_with_sim_time(rclpy_session, monkeypatch):
+    """With use_sim_time and no /clock (a bag that has ended), a ROS-clock timer never fires: submaps
+    waiting behind a lost number were never joined."""
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    monkeypatch.setattr(node_module, "set_blas_threads", lambda n: None)
+    monkeypatch.setattr(node_module, "tune_allocator", lambda threshold: True)
+    ticks: list[float] = []
+    monkeypatch.setattr(node_module.JoinerNode, "_on_expire_timer", lambda self: ticks.append(1.0))
+    overrides = [Parameter("use_sim_time", value=True)]
+    joiner = node_module.JoinerNode(namespace=f"t{uuid.uuid4().hex[:8]}", parameter_overrides=overrides)
+    executor = SingleThreadedExecutor()
+    executor.add_node(joiner)
+    try:
+        assert joiner.get_clock().ros_time_is_active  # sim time, and no /clock published
+        deadline = time.monotonic() + 1.2
+        while time.monotonic() < deadline and rclpy.ok():
+            executor.spin_once(timeout_sec=0.05)
+        assert len(ticks) >= 3, ticks  # every 0.25 s
+    finally:
+        executor.remove_node(joiner)
+        joiner.destroy_node()

@@ -1,0 +1,51 @@
+"""The bag tools' guards: an --out that is not a bag is never deleted; numeric options that cannot work are refused."""
+
+from __future__ import annotations
+
+import pytest
+
+from linear_slam_ros.core.errors import DatasetError
+from linear_slam_ros.ros import bag_from_dataset
+from linear_slam_ros.ros.bagio import read_messages, write_messages
+
+
+def test_overwrite_replaces_a_bag_and_never_anything_else(tmp_path):
+    bag = tmp_path / "bag"
+    assert write_messages(bag, [("local_map", 1, b"\x00\x01\x00\x00" + bytes(12))], overwrite=True) == 1
+    assert write_messages(bag, [], overwrite=True) == 0  # a bag is replaced
+    assert list(read_messages(bag)) == []
+    user = tmp_path / "thesis"
+    user.mkdir()
+    (user / "thesis.txt").write_text("four years")
+    with pytest.raises(DatasetError, match=r"thesis exists and is not a bag \(it holds thesis.txt\): not replaced"):
+        write_messages(user, [], overwrite=True)
+    (user / "metadata.yaml").write_text("x")  # a bag's name, but a foreign file beside it
+    with pytest.raises(DatasetError, match=r"is not a bag \(it holds thesis.txt\)"):
+        write_messages(user, [], overwrite=True)
+    assert (user / "thesis.txt").read_text() == "four years"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(DatasetError, match=r"empty exists and is not a bag \(it has no metadata.yaml\)"):
+        write_messages(empty, [], overwrite=True)
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("keep")
+    with pytest.raises(DatasetError, match="notes.txt exists and is not a bag folder: not replaced"):
+        write_messages(a_file, [], overwrite=True)
+    assert a_file.read_text() == "keep"
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--rate", "0"], "--rate 0.0: must be within"),
+        (["--rate", "nan"], "--rate nan: must be within"),
+        (["--rate", "-10"], "--rate -10.0: must be within"),
+        (["--rate", "1e-12"], "--rate 1e-12: must be within"),
+        (["--as-pose-graph", "--maps-per-chunk", "0"], "--maps-per-chunk 0: must be >= 1"),
+    ],
+)
+def test_bag_from_dataset_refuses_options_that_cannot_work(options, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as stop:
+        bag_from_dataset.main(["--synthetic", "city2d-20", "--out", str(tmp_path / "b"), *options])
+    assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StoragePlugin, Writer
 
 from linear_slam_ros.core.errors import DatasetError
 from msg_adapters.bags import MSGTYPE, TYPESTORE, read_records, serialize
@@ -98,10 +98,24 @@ def write_messages(
 
 
 def read_messages(path: Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-    """Yield the records of a bag in time order (optionally only some topics).
+    """Yield the ``Float64MultiArray`` records of a bag in time order (optionally only some topics);
+    messages of other types are not read (:func:`other_topics` names them).
 
     Raises:
         DatasetError: the bag cannot be read.
     """
-    for record in read_records(path, topics):
+    for record in read_records(path, topics, msgtype=MSGTYPE):
         yield BagRecord(*record)
+
+
+def other_topics(path: Path) -> dict[str, str]:
+    """Return ``{topic: message type}`` of a bag's topics that are not ``Float64MultiArray``.
+
+    Raises:
+        DatasetError: the bag cannot be read.
+    """
+    try:
+        with Reader(Path(path)) as reader:
+            return {c.topic: c.msgtype for c in reader.connections if c.msgtype != MSGTYPE}
+    except Exception as exc:  # rosbags raises several types for unreadable bags
+        raise DatasetError(f"cannot read bag {path}: {' '.join(str(exc).split())}") from None

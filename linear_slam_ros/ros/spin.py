@@ -58,15 +58,16 @@ def spin_until(node: Node, done: Callable[[], bool], timeout_s: float, period_s:
     return True
 
 
-def wait_for_subscribers(node: Node, publishers: Mapping[str, Publisher], timeout_s: float) -> None:
-    """Spin until each publisher (by topic) sees a subscriber.
+def wait_for_subscribers(node: Node, publishers: Mapping[str, Publisher], timeout_s: float, count: int = 1) -> None:
+    """Spin until each publisher (by topic) sees at least ``count`` subscribers.
 
     Raises:
-        TimeoutError: some topic had no subscriber within ``timeout_s``.
+        TimeoutError: some topic had fewer within ``timeout_s``.
     """
-    if not spin_until(node, lambda: all(p.get_subscription_count() > 0 for p in publishers.values()), timeout_s):
-        missing = [t for t, p in publishers.items() if p.get_subscription_count() == 0]
-        raise TimeoutError(f"no subscriber on {missing} after {timeout_s:.0f} s")
+    if not spin_until(node, lambda: all(p.get_subscription_count() >= count for p in publishers.values()), timeout_s):
+        missing = [t for t, p in publishers.items() if p.get_subscription_count() < count]
+        what = "no subscriber" if count == 1 else f"fewer than {count} subscribers"
+        raise TimeoutError(f"{what} on {missing} after {timeout_s:.0f} s")
 
 
 class LatestMessage(Generic[T]):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import DatasetError
@@ -49,3 +50,22 @@ def test_bag_from_dataset_refuses_options_that_cannot_work(options, message, tmp
         bag_from_dataset.main(["--synthetic", "city2d-20", "--out", str(tmp_path / "b"), *options])
     assert stop.value.code == 2 and message in capsys.readouterr().err
     assert not (tmp_path / "b").exists()
+
+
+def test_topics_of_other_types_are_not_read_and_are_named(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from linear_slam_ros.ros.bagio import other_topics
+    from msg_adapters.bags import TYPESTORE
+
+    bag = tmp_path / "mixed"
+    string = TYPESTORE.types["std_msgs/msg/String"]
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        floats = writer.add_connection("local_map", "std_msgs/msg/Float64MultiArray", typestore=TYPESTORE)
+        words = writer.add_connection("chatter", "std_msgs/msg/String", typestore=TYPESTORE)
+        writer.write(words, 1, TYPESTORE.serialize_cdr(string(data="hi"), "std_msgs/msg/String"))
+        array = TYPESTORE.types["std_msgs/msg/Float64MultiArray"]
+        layout = TYPESTORE.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+        writer.write(floats, 2, TYPESTORE.serialize_cdr(array(layout=layout, data=np.zeros(1)), "std_msgs/msg/Float64MultiArray"))
+    assert [r.topic for r in read_messages(bag)] == ["local_map"]  # a String was played as a Float64MultiArray
+    assert other_topics(bag) == {"chatter": "std_msgs/msg/String"}

@@ -1,4 +1,4 @@
-"""bag_player --clock: the bag's time on /clock while replaying, as ``ros2 bag play --clock``."""
+"""bag_player: --clock (the bag's time on /clock while replaying, as ``ros2 bag play --clock``), --subscribers, shutdown."""
 
 from __future__ import annotations
 
@@ -52,3 +52,34 @@ def test_clock_message_and_bad_rates(node, tmp_path, capsys):
         play(node, [], clock_hz=0.0)
     assert main(["bag_player", str(tmp_path), "--clock", "-1"]) == 2
     assert "--clock -1: the clock rate must be positive (Hz)" in capsys.readouterr().err
+
+
+def test_a_second_subscriber_can_be_waited_for_and_a_bad_count_is_refused(node, tmp_path, capsys):
+    records = [BagRecord("local_map_two", T0, serialize_message(Float64MultiArray(data=[1.0])), False)]
+    listener = node.create_subscription(Float64MultiArray, "local_map_two", lambda m: None, 10)
+    try:
+        with pytest.raises(TimeoutError, match=r"fewer than 2 subscribers on \['local_map_two'\]"):
+            play(node, records, wait_s=0.5, subscribers=2)  # a monitor alone does not start the replay
+    finally:
+        node.destroy_subscription(listener)
+    assert main(["bag_player", str(tmp_path), "--subscribers", "0"]) == 2
+    assert "--subscribers 0: must be >= 1" in capsys.readouterr().err
+
+
+def test_a_publish_refused_after_shutdown_stops_at_once():
+    from rclpy._rclpy_pybind11 import RCLError
+    from rclpy.executors import ExternalShutdownException
+
+    from linear_slam_ros.ros.player import _publish_when_room
+
+    class Refusing:
+        calls = 0
+
+        def publish(self, raw):
+            Refusing.calls += 1
+            raise RCLError("publisher's context is invalid")
+
+    t0 = time.monotonic()
+    with pytest.raises(ExternalShutdownException):
+        _publish_when_room(Refusing(), b"", wait_s=30.0, ok=lambda: False)  # type: ignore[arg-type]
+    assert time.monotonic() - t0 < 1.0 and Refusing.calls == 1  # it waited 30 s, retrying every 2 ms

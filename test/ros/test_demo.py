@@ -83,3 +83,23 @@ def test_the_demo_reads_a_global_map_beyond_the_inputs_condition_bound():
     decoded = decode_global_map(raw)
     np.testing.assert_array_equal(decoded.local_map.x, local_map.x)
     np.testing.assert_array_equal(to_dense(decoded.local_map.info), info)
+
+
+def test_a_bag_given_alone_is_scored_against_its_own_maps(tmp_path, monkeypatch, capsys):
+    """--bag OTHER without --dataset was scored against VicPark200's maps (a FrameError, no report)."""
+    from linear_slam_ros.ros import demo
+
+    seen: list[tuple[object, object]] = []
+
+    def fake_run_demo(dataset, bag, *rest, **kwargs):
+        seen.append((dataset, bag))
+        return {"n_submaps_joined": 1, "n_submaps_sent": 1, "joiner_exit_code": 0}
+
+    monkeypatch.setattr(demo, "run_demo", fake_run_demo)
+    other = tmp_path / "other_bag"
+    assert demo.main(["--bag", str(other), "--out", str(tmp_path / "o")]) == 0
+    assert demo.main(["--bag", str(other), "--dataset", "synthetic:city2d-20", "--out", str(tmp_path / "o")]) == 0
+    assert demo.main(["--out", str(tmp_path / "o")]) == 0
+    assert [(str(d), str(b)) for d, b in seen] == [
+        (str(other), str(other)), ("synthetic:city2d-20", str(other)), ("bags/vicpark200", "bags/vicpark200"),
+    ]

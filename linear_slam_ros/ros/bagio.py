@@ -46,7 +46,7 @@ def qos(latched: bool) -> Qos:
     )
 
 
-def _check_replaceable_bag(path: Path) -> None:
+def check_replaceable_bag(path: Path) -> None:
     """Raise :class:`DatasetError` unless ``path`` is a bag folder: ``metadata.yaml`` and storage files only."""
     if not path.is_dir():
         raise DatasetError(f"{path} exists and is not a bag folder: not replaced")
@@ -76,7 +76,7 @@ def write_messages(
     if path.exists():
         if not overwrite:
             raise DatasetError(f"bag {path} exists; remove it first")
-        _check_replaceable_bag(path)
+        check_replaceable_bag(path)
         shutil.rmtree(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)

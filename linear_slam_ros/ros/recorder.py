@@ -1,8 +1,12 @@
 """Record topics (``global_map`` by default) into a rosbag2 MCAP bag.
 
 ``bag_recorder --out BAG [--topics global_map] [--count N] [--duration S]``: subscribes
-reliable and transient local (so a latched map published before start is received too) and
-writes every message as received; stops after N messages, S seconds, or Ctrl-C.
+reliable and transient local (so a latched map published before start is received too), keeps
+every message as received, and writes the bag when it stops: after N messages, S seconds,
+Ctrl-C or SIGTERM. It records the node's latched ``Float64MultiArray`` outputs (``global_map``,
+``global_map_refined``): a volatile publisher (``local_map``) cannot serve a transient-local
+subscription, and other types are not received. Every recorded topic is written as latched, as
+its publisher offered it. An ``--out`` that exists and is not a bag is refused before recording.
 """
 
 from __future__ import annotations
@@ -14,10 +18,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import rclpy
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_msgs.msg import Float64MultiArray
 
-from linear_slam_ros.ros.bagio import write_messages
+from linear_slam_ros.core.errors import DatasetError
+from linear_slam_ros.ros.bagio import check_replaceable_bag, write_messages
 from linear_slam_ros.ros.qos import recorder_qos
 from linear_slam_ros.ros.spin import node_session, spin_until
 
@@ -51,6 +57,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--count", type=int, default=0, help="stop after this many messages (0: no limit)")
     ap.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: no limit)")
     args = ap.parse_args(args_ros[1:])
+    if args.out.exists():
+        try:
+            check_replaceable_bag(args.out)
+        except DatasetError as exc:
+            print(f"bag_recorder: {exc}", file=sys.stderr)
+            return 2
     with node_session("bag_recorder", argv) as node:
         recorder = Recorder(node, args.topics)
         try:
@@ -60,11 +72,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 args.duration if args.duration > 0 else math.inf,
                 period_s=0.1,
             )
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C, SIGTERM: the bag is written all the same
             pass
         finally:
-            n = recorder.save(args.out, latched={"global_map"})
-            node.get_logger().info(f"recorded {n} messages to {args.out}")
+            n = recorder.save(args.out, latched=set(args.topics))  # subscribed transient local: latched publishers
+            print(f"bag_recorder: recorded {n} messages to {args.out}", file=sys.stderr)
     return 0
 
 

@@ -69,3 +69,14 @@ def test_topics_of_other_types_are_not_read_and_are_named(tmp_path):
         writer.write(floats, 2, TYPESTORE.serialize_cdr(array(layout=layout, data=np.zeros(1)), "std_msgs/msg/Float64MultiArray"))
     assert [r.topic for r in read_messages(bag)] == ["local_map"]  # a String was played as a Float64MultiArray
     assert other_topics(bag) == {"chatter": "std_msgs/msg/String"}
+
+
+def test_the_recorder_refuses_an_out_that_is_not_a_bag_before_recording(tmp_path, capsys):
+    from linear_slam_ros.ros.recorder import main
+
+    user = tmp_path / "home"
+    user.mkdir()
+    (user / "notes.txt").write_text("keep")
+    assert main(["bag_recorder", "--out", str(user), "--duration", "0.1"]) == 2
+    assert "home exists and is not a bag (it holds notes.txt): not replaced" in capsys.readouterr().err
+    assert (user / "notes.txt").read_text() == "keep"

@@ -182,6 +182,7 @@ class JoinerNode(Node):
         self._views_stale = False  # path and features skipped for want of a subscriber (README, "Topics")
         self._views_skipped = 0  # publications that skipped them
         self._summary_counts: tuple[float, ...] | None = None  # what the last summary line said
+        self._diag_rejected = 0  # rejections counted at the last /diagnostics
         # per submap with timing_file: [arrival (monotonic s), join ms, pose freshness ms, map freshness ms]
         self._timeline: dict[int, list[float]] | None = {} if config.timing_file else None
 
@@ -894,8 +895,14 @@ class JoinerNode(Node):
             )
         status = DiagnosticStatus(level=DiagnosticStatus.OK, name=f"{self.get_name()}: joining", hardware_id=self.get_name())
         status.message = "joining" if state.n_joined else "waiting for submaps"
-        if stats["n_rejected"]:
-            status.level, status.message = DiagnosticStatus.WARN, f"{int(stats['n_rejected'])} submaps rejected"
+        # the level says how the node is now: WARN while submaps are being rejected, OK again after a quiet
+        # period (the totals stay in the values; one lost submap kept it WARN for the process's life)
+        recent = int(stats["n_rejected"]) - self._diag_rejected
+        self._diag_rejected = int(stats["n_rejected"])
+        if recent > 0:
+            status.level = DiagnosticStatus.WARN
+            period = self.config.summary_period
+            status.message = f"{recent} submaps rejected in the last {period:g} s ({self._diag_rejected} in all)"
         stats.update(self.node_stats())
         status.values = [KeyValue(key=k, value=f"{v:g}") for k, v in stats.items()]
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))

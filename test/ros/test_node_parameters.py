@@ -112,3 +112,28 @@ def test_the_reorder_timeout_runs_on_the_steady_clock_with_sim_time(rclpy_sessio
     finally:
         executor.remove_node(joiner)
         joiner.destroy_node()
+
+
+def test_diagnostics_warn_while_submaps_are_rejected_and_are_ok_again_after_a_quiet_period(rclpy_session, monkeypatch):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    monkeypatch.setattr(node_module, "set_blas_threads", lambda n: None)
+    monkeypatch.setattr(node_module, "tune_allocator", lambda threshold: True)
+    joiner = node_module.JoinerNode(namespace=f"t{uuid.uuid4().hex[:8]}")
+    sent: list[object] = []
+    joiner.pub_diag = SimpleNamespace(publish=sent.append)
+    try:
+        joiner.joiner.reject("bad_message", "a bad one")
+        joiner._on_summary_timer()
+        joiner._on_summary_timer()  # a quiet period: one lost submap kept it WARN for the process's life
+        joiner.joiner.reject("bad_message", "another")
+        joiner._on_summary_timer()
+        levels = [(a.status[0].level, a.status[0].message) for a in sent]
+        assert levels == [
+            (DiagnosticStatus.WARN, "1 submaps rejected in the last 5 s (1 in all)"),
+            (DiagnosticStatus.OK, "waiting for submaps"),
+            (DiagnosticStatus.WARN, "1 submaps rejected in the last 5 s (2 in all)"),
+        ]
+        assert {v.key: v.value for v in sent[1].status[0].values}["n_rejected"] == "1"  # the total stays
+    finally:
+        joiner.destroy_node()

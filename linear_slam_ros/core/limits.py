@@ -103,6 +103,12 @@ inputs' bound there although it was solved before that change: sphere2500's onli
 the 1e14 of :data:`DEFAULT_LIMITS`), against 1.8e12 and 4.5e12 one submap before and after. Whoever
 joins such a map again raises ``max_condition`` knowingly."""
 
+DEFINITE_ONLY = InputLimits(
+    min_information=sys.float_info.min, max_information=sys.float_info.max, max_condition=sys.float_info.max
+)
+"""Limits that only ask an information matrix to be symmetric and positive definite (no magnitude or
+condition bound): for matrices a computation made, such as a map moved to another frame."""
+
 NODE_LIMITS = InputLimits(max_state_scalars=5_000, max_info_triplets=2_000_000)
 """The node's defaults for the submaps it joins (its ``max_*`` parameters): sequential joining
 holds a submap's dense covariance (5,000 scalars: 200 MB a copy; two fully overlapping

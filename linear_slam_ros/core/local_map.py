@@ -13,7 +13,6 @@ import dataclasses
 import functools
 import logging
 import math
-import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,9 +24,10 @@ import scipy.linalg.lapack
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from linear_slam_ros.core.errors import GeometryError, InvalidMapError, SolverError
+from linear_slam_ros.core.errors import InvalidMapError, SolverError
 from linear_slam_ros.core.geometry import angle_size, pitch_lock_index, pitch_lock_message, point_size, pose_size, wrap_angle
 from linear_slam_ros.core.limits import (
+    DEFINITE_ONLY,
     InputLimits,
     beyond_message,
     condition_fault,
@@ -514,44 +514,17 @@ class LocalMap(VariableLayout):
             condition = check_information(self.info, who, lim, self._describe_index)
         else:
             condition = check_block_diagonal_information(blocks, who, lim, self._describe_index)
-        self._check_in_end_frame(condition, who, lim)
+        self.__dict__["condition_estimate"] = condition  # the cached property, known now at no cost
 
-    def _check_in_end_frame(self, condition: float, who: str, limits: InputLimits) -> None:
-        """Check that the map's information is positive definite in the frame of its end pose, where
-        the joins express it.
-
-        A change of frame carries the angles' uncertainty to every variable by its lever arm: a
-        pose 100 m away with heading information 1e-3 and position information 1e10 (condition 1e13,
-        within the bound) is not positive definite in double precision in its end pose's frame,
-        and once joined no global map could be factorised again. Checked only when the bound
-        ``condition * (1 + L)^4`` on the moved map's condition (``L`` the largest coordinate, m)
-        exceeds ``max_condition`` (below it the moved map is certainly positive definite): never
-        for the benchmark datasets (at most 7.7e12, VicPark200).
+    @functools.cached_property
+    def condition_estimate(self) -> float:
+        """The information's condition number, as :func:`check_information` estimates it (1-norm), kept
+        from validation (computed when first asked for a map made without it).
 
         Raises:
-            InvalidMapError: the moved information is not positive definite, or a pose would be at
-                pitch +-90 deg there.
+            InvalidMapError: the information is not positive definite.
         """
-        end = self.end_id
-        if end is None or end == self.frame_id or not self.has_pose(end):
-            return
-        lever = float(np.abs(self.x[~self.angles]).max(initial=0.0))
-        if condition * (1.0 + lever) ** 4 <= limits.max_condition:
-            return
-        from linear_slam_ros.core.frames import change_frame  # frames builds on this module
-
-        where = f"{who} in the frame of its end pose {end} (where it is joined)"
-        try:
-            moved = change_frame(self, end)
-        except GeometryError as exc:
-            raise InvalidMapError(f"{where}: {exc}") from None
-        # positive definite only: a far pose's information is legitimately ill-conditioned there (its position
-        # across the lever arm follows its heading: 1 km away, heading std 0.1 rad, position std 1 cm: 1e14),
-        # and its entries' magnitudes are the change of frame's, not an input's
-        definite_only = dataclasses.replace(
-            limits, min_information=sys.float_info.min, max_information=sys.float_info.max, max_condition=sys.float_info.max
-        )
-        check_information(moved.info, where, definite_only, moved._describe_index)
+        return check_information(self.info, f"local map {self.name!r}", DEFINITE_ONLY)
 
     def _describe_index(self, i: int) -> str:
         var = int(np.searchsorted(self.offsets, i, side="right")) - 1

@@ -18,7 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
-from linear_slam_ros.core.frames import estimate_in_frame
+from linear_slam_ros.core.frames import end_frame_fault, estimate_in_frame
 from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.core.timing import latency
 from linear_slam_ros.joiner.config import OutputFrame, check_strategy_can
@@ -411,9 +411,15 @@ def submap_step(
     :attr:`SubmapStep.failed`: the submap stays joined.
 
     Raises:
-        LinearSlamError: the submap cannot be joined (nothing changes).
+        LinearSlamError: the submap cannot be joined (nothing changes); among them
+            :class:`InvalidMapError` for one not positive definite in the frame of its end pose
+            (:func:`~linear_slam_ros.core.frames.end_frame_fault`): joined, it would leave no global
+            map that could be factorised.
         numpy.linalg.LinAlgError: its numbers make a system singular (nothing changes).
     """
+    fault = end_frame_fault(submap)
+    if fault is not None:
+        raise InvalidMapError(fault)
     state, rest = hold_step(state, submap, seq, robot)
     result, joined = None, None
     if rest is not None:

@@ -57,6 +57,7 @@ from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.pose_output import PoseTracker
 from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbound_qos, latched_qos
 from linear_slam_ros.ros.raw_publish import publish_serialized
+from linear_slam_ros.ros.spin import print_usage_if_asked
 from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.cdr import to_cdr
@@ -1016,8 +1017,19 @@ def status_header(node: Node) -> Any:
     return Header(stamp=node.get_clock().now().to_msg())
 
 
+def _usage() -> str:
+    """The joiner's parameters with their defaults, whether they are read-only, and what they do."""
+    lines = ["Joins every submap on local_map / pose_graph as it arrives and publishes global_map (README.md).", "",
+             "parameters (default; * read-only):"]
+    for d in (*parameter_declarations(), *TF_PARAMETERS):
+        lines.append(f"  {d.name} = {d.default!r}{' *' if d.spec.read_only else ''}: {d.spec.description}")
+    return "\n".join(lines)
+
+
 def main(args: list[str] | None = None) -> None:
-    """Start the joiner; Ctrl-C stops it cleanly; an invalid parameter exits with code 2."""
+    """Start the joiner; Ctrl-C stops it cleanly; an invalid parameter exits with code 2; ``--help`` lists the parameters."""
+    if print_usage_if_asked(args, NODE_NAME, _usage()):
+        return
     profile = inbound_dds_profile(os.environ, _share_directory())
     if profile is not None:  # read by FastDDS when rclpy creates the participant
         os.environ[PROFILE_VARIABLES[0]] = str(profile)

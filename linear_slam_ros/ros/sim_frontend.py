@@ -65,6 +65,7 @@ from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.evaluation.city import feature_local_maps, measure_features, park_world
 from linear_slam_ros.evaluation.synthetic import World, make_world
 from linear_slam_ros.ros.qos import inbound_qos, latched_qos
+from linear_slam_ros.ros.spin import print_usage_if_asked
 from msg_adapters import Stamp, encode_map
 from msg_adapters.ros import to_msg
 from msg_adapters.views import pose_stamped_msg
@@ -193,7 +194,9 @@ TRUTH_LINGER_S = 1.0
 
 
 def main(args: list[str] | None = None) -> None:
-    """Run the node until ``n_maps`` maps are acknowledged (or for ever); Ctrl-C stops it cleanly."""
+    """Run the node until ``n_maps`` maps are acknowledged (or for ever); Ctrl-C stops it cleanly; ``--help`` prints the docs."""
+    if print_usage_if_asked(args, "sim_frontend", __doc__ or ""):
+        return
     rclpy.init(args=args)
     try:
         node = SimFrontend()

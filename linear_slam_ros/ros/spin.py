@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -27,6 +28,16 @@ from std_msgs.msg import Float64MultiArray
 from linear_slam_ros.ros.qos import latched_qos
 
 T = TypeVar("T")
+
+
+def print_usage_if_asked(args: Sequence[str] | None, name: str, text: str) -> bool:
+    """Print ``text`` as ``name``'s usage and return True when ``args`` (default ``sys.argv``), ROS
+    arguments aside, ask for ``-h``/``--help``: a node's executable otherwise starts the node."""
+    asked = rclpy.utilities.remove_ros_args(list(sys.argv if args is None else args))[1:]
+    if not {"-h", "--help"} & set(asked):
+        return False
+    print(f"usage: ros2 run linear_slam_ros {name} [--ros-args -p NAME:=VALUE | --params-file FILE ...]\n\n{text}")
+    return True
 
 
 @contextmanager

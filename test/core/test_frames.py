@@ -123,3 +123,22 @@ def test_a_change_of_frame_that_puts_a_pose_at_pitch_90_deg_is_refused():
     with pytest.raises(GeometryError, match=r"map 'pitched': pose 2 \(state index 10\) in the frame of pose 1 has pitch"):
         covariance.change_frame(1, _in_place=True)
     np.testing.assert_array_equal(covariance.cov_tilde, before)  # refused before anything was changed
+
+
+def test_a_map_not_positive_definite_in_the_frame_of_its_end_pose_cannot_be_joined():
+    """Heading information 1e-3 and position information 1e10, 100 m away: condition 1e13 in its own
+    frame, within the input bound, but not positive definite in double precision in its end pose's
+    frame, where joins express it."""
+    from linear_slam_ros.core.frames import end_frame_fault
+
+    def far(distance, info):
+        return LocalMap(2, 12, 13, np.array([13]), np.array([POSE], dtype=np.int8), np.array([distance, 0.0, 0.0]),
+                        np.diag(info), "far")
+
+    fault = end_frame_fault(far(100.0, [1e10, 1e10, 1e-3]))
+    assert fault == ("local map 'far' in the frame of its end pose 13 (where it is joined): "
+                     "information matrix is not positive definite")
+    # a front-end's far pose with a sane heading: 1 km away, heading std 0.1 rad, position std 1 cm (condition 1e14
+    # there: its position across the lever arm follows its heading; positive definite)
+    assert end_frame_fault(far(1000.0, [1e4, 1e4, 100.0])) is None
+    assert end_frame_fault(_map(2, np.random.default_rng(3))) is None

@@ -139,17 +139,3 @@ def test_a_pose_close_to_the_pitch_lock_is_accepted():
     x = np.r_[0, 0, 0, 0.1, np.pi / 2 - 2e-6, 0.3, 1, 2, 3, 0.4, -np.pi / 2 + 2e-6, 2]
     m = _good(dim=3, kinds=np.array([POSE, POSE], dtype=np.int8), x=x, info=np.eye(12))
     assert m.pitch_lock_fault() is None
-
-
-def test_a_map_that_cannot_be_joined_in_the_frame_of_its_end_pose_is_refused():
-    """Heading information 1e-3 and position information 1e10, 100 m away: condition 1e13 in its own
-    frame, within the bound, but not positive definite in double precision in its end pose's frame,
-    where joins express it; joined, it left no global map that could be factorised again."""
-    far = dict(dim=2, frame_id=12, end_id=13, ids=np.array([13]), kinds=np.array([POSE], dtype=np.int8),
-               x=np.array([100.0, 0.0, 0.0]), name="far")
-    with pytest.raises(InvalidMapError, match=r"local map 'far' in the frame of its end pose 13 \(where it is joined\): "
-                                              r"information matrix is not positive definite"):
-        LocalMap(**far, info=np.diag([1e10, 1e10, 1e-3]))
-    # a front-end's far pose with a sane heading: 1 km away, heading std 0.1 rad, position std 1 cm (condition
-    # 1e14 there: its position across the lever arm follows its heading; positive definite)
-    assert LocalMap(**{**far, "x": np.array([1000.0, 0.0, 0.0])}, info=np.diag([1e4, 1e4, 100.0])).end_id == 13

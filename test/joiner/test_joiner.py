@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.local_map import POSE, LocalMap
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner
@@ -257,3 +258,22 @@ def test_an_empty_submap_uses_its_number_and_changes_nothing(maps):
     assert j.offer(empty, 2) == [] and reasons == []
     assert global_map_of(j.state).x.tobytes() == before and j.expected == 3
     assert j.offer(maps[1].replace(name="m"), 3) == [3]  # the stream goes on (maps[1] starts where the map ends)
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC])
+def test_a_submap_that_would_leave_no_global_map_is_rejected_and_the_stream_goes_on(mode, maps):
+    """Joined, a pose 100 m ahead with heading information 1e-3 and position information 1e10 (within
+    every input limit) left no global map that could be factorised again."""
+    reasons: list[tuple[str, str]] = []
+    j = Joiner(mode, on_reject=lambda reason, message: reasons.append((reason, message)))
+    for seq, m in enumerate(maps[:6], start=1):
+        assert j.offer(m, seq) == [seq]
+    before = global_map_of(j.state).x.tobytes()
+    end = maps[5].end_id
+    poison = LocalMap(2, end, end + 1000, np.array([end + 1000]), np.array([POSE], dtype=np.int8),
+                      np.array([100.0, 0.0, 0.0]), np.diag([1e10, 1e10, 1e-3]), "poison")
+    assert j.offer(poison, 7) == []
+    assert reasons[-1][0] == "InvalidMapError" and "in the frame of its end pose" in reasons[-1][1]
+    assert global_map_of(j.state).x.tobytes() == before
+    assert j.offer(maps[6], 7) == [7]  # a valid submap takes the number and continues the chain
+    assert global_map_of(j.state).n_vars > 0

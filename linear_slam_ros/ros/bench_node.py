@@ -37,6 +37,8 @@ from linear_slam_ros.evaluation.objective import chi2
 from linear_slam_ros.evaluation.runner import run_join
 from linear_slam_ros.io.datasets import read_dataset
 from linear_slam_ros.joiner.config import JoinerConfig
+from linear_slam_ros.joiner.registry import methods
+from linear_slam_ros.joiner.strategy import MapType
 from linear_slam_ros.ros.bag_from_dataset import make_bag
 from linear_slam_ros.ros.bagio import read_messages
 from linear_slam_ros.ros.demo import decode_global_map, run_demo
@@ -178,7 +180,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--only", nargs="*", default=None, help="only these streams (dataset or synthetic names)")
     ap.add_argument("--bags", type=Path, default=Path("bags"))
     ap.add_argument("--out", type=Path, default=Path("out/benchmark"))
-    ap.add_argument("--mode", default=None, help=f"joiner mode (default: the joiner's, {JoinerConfig().mode.value})")
+    ap.add_argument(
+        "--mode", choices=[m.value for m in methods(MapType.AS_IS, online_only=True)], default=None,
+        help=f"joiner mode (default: the joiner's, {JoinerConfig().mode.value})",
+    )
     args = ap.parse_args(argv)
     streams: list[tuple[str, str, bool]] = []  # (name, source, as_pose_graph)
     archives = sorted(args.datasets_dir.glob("*.tar.xz")) if args.datasets_dir.is_dir() else []
@@ -187,6 +192,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     streams += [(a.name.removesuffix(".tar.xz"), str(a), False) for a in archives]
     streams += [(s, f"synthetic:{s}", s.split("-")[0] in POSE_GRAPH_SYNTHETIC) for s in args.synthetic]
     if args.only:
+        unknown = sorted(set(args.only) - {name for name, _, _ in streams})
+        if unknown:  # a typo measured nothing and overwrote node.md with an empty table
+            ap.error(f"--only {' '.join(unknown)}: no such stream (have: {', '.join(name for name, _, _ in streams)})")
         streams = [s for s in streams if s[0] in args.only]
     entries = []
     for name, source, as_graph in streams:

@@ -103,3 +103,16 @@ def test_a_bag_given_alone_is_scored_against_its_own_maps(tmp_path, monkeypatch,
     assert [(str(d), str(b)) for d, b in seen] == [
         (str(other), str(other)), ("synthetic:city2d-20", str(other)), ("bags/vicpark200", "bags/vicpark200"),
     ]
+
+
+def test_bench_node_refuses_an_unknown_stream_or_mode_before_measuring_anything(tmp_path, capsys):
+    from linear_slam_ros.ros.bench_node import main
+
+    for argv, message in (
+        (["--only", "city2d-2000O"], "--only city2d-2000O: no such stream"),
+        (["--mode", "bogus"], "argument --mode: invalid choice: 'bogus'"),
+    ):
+        with pytest.raises(SystemExit) as stop:
+            main([*argv, "--datasets-dir", str(tmp_path / "none"), "--out", str(tmp_path / "out")])
+        assert stop.value.code == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()  # node.md was overwritten with an empty table

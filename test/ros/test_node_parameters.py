@@ -137,3 +137,14 @@ def test_diagnostics_warn_while_submaps_are_rejected_and_are_ok_again_after_a_qu
         assert {v.key: v.value for v in sent[1].status[0].values}["n_rejected"] == "1"  # the total stays
     finally:
         joiner.destroy_node()
+
+
+def test_help_prints_the_usage_instead_of_starting_the_node(capsys):
+    from linear_slam_ros.ros import sim_frontend
+
+    node_module.main(["joiner", "--ros-args", "-p", "mode:=sequential", "--", "--help"])
+    text = capsys.readouterr().out
+    assert text.startswith("usage: ros2 run linear_slam_ros joiner [--ros-args")
+    assert "  gate_probability = 0.0: " in text and "  mode = 'online-dc' *: " in text  # every parameter, read-only starred
+    sim_frontend.main(["sim_frontend", "-h"])
+    assert "a simulated robot and SLAM front-end" in capsys.readouterr().out

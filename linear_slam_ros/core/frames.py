@@ -404,13 +404,13 @@ def end_frame_fault(local_map: LocalMap, max_condition: float = DEFAULT_LIMITS.m
     far pose's information is legitimately ill-conditioned in that frame (its position across the
     lever arm follows its heading: 1 km away, heading std 0.1 rad, position std 1 cm: condition
     1e14). Checked only when the bound ``condition * (1 + L)^4`` on the moved map's condition (``L``
-    the largest coordinate, m) exceeds ``max_condition`` (below it the moved map is certainly
+    the largest coordinate, m, or angle) exceeds ``max_condition`` (below it the moved map is certainly
     positive definite): never for the benchmark datasets (at most 7.7e12, VicPark200).
     """
     end = local_map.end_id
     if end is None or end == local_map.frame_id or not local_map.has_pose(end) or local_map.state_dim == 0:
         return None
-    lever = float(np.abs(local_map.x[~local_map.angles]).max(initial=0.0))
+    lever = float(np.abs(local_map.x).max(initial=0.0))  # angles too (at most pi: the bound only grows)
     where = f"local map {local_map.name!r} in the frame of its end pose {end} (where it is joined)"
     try:
         if local_map.condition_estimate * (1.0 + lever) ** 4 <= max_condition:

@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -71,6 +72,8 @@ from linear_slam_ros.core.solvers import DENSE_MAX, solve_sparse_spd, spd_factor
 from linear_slam_ros.joining.divide_conquer import Deferred, Entry, OnlineDCState, leaf_entries, leaf_maps
 from linear_slam_ros.joining.pairwise import join_at_seam
 from linear_slam_ros.joining.sequential import CovarianceMap, _symmetrize_lower
+
+logger = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -857,6 +860,16 @@ def gate_submap(
         current, current_vars = conditional(active)
     dof_after = int(sizes[active].sum()) if active else 0
     rejected = fails(current, dof_after, current_vars)
+    if rejected and not removable.any():
+        # what fails is only what cannot be split off (its end pose, already in the map through a closure): it
+        # is joined as it is, and said so, never reported as kept out
+        logger.warning(
+            "submap %r fails the gate (NIS %.1f > %.1f for %d dof) on its end pose only, which cannot be split off: "
+            "joined as it is", submap.name, total, threshold, dof,
+        )
+        return GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap,
+                          variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
+                          variables=tuple(per_var))
     if rejected:  # everything it says about the map is dropped; its new variables still extend the chain
         split = [v for b, v in enumerate(per_var) if removable[b]]
         current, dof_after = 0.0, int(sizes[~removable].sum())

@@ -7,7 +7,8 @@ the submap arrives, so the gate has nothing to compare it with; by the time the 
 the closure is fused and a wrong one can no longer be kept out.
 
 With the gate on (or ``hold_closures``), such a closure is split off the submap on arrival and *held*: a pose variable
-that the map does not hold, that is not the submap's end pose, and whose information is
+that the map does not hold, that is not the submap's end pose nor between its frame pose and its end
+pose (the submap's own path: pose ids run along the trajectory), and whose information is
 uncoupled from the rest of the submap (an edge of its own: the information of a star pose-graph
 chunk is block-diagonal per edge), so that taking it off is exact: its rows and columns are cut
 out, nothing is marginalised and nothing dense is formed. A pose with one edge tells the rest of
@@ -135,7 +136,10 @@ def split_forward(
     entries = _entries(submap)
     owner = np.repeat(np.arange(submap.n_vars), submap.sizes)
     alone = _uncoupled(owner, entries[0], entries[1], submap.n_vars)
-    forward = [i for i in new if alone[i]]
+    # a pose between the frame pose and the end pose is the submap's own path (a star chunk of several steps),
+    # not a closure: held, it would wait for a chain end that passes it by (pose ids run along the trajectory)
+    low, high = sorted((submap.frame_id, submap.end_id))
+    forward = [i for i in new if alone[i] and not low < int(submap.ids[i]) < high]
     if not forward:
         return submap, ()
     held = [HeldClosure(seq, robot, submap.name, int(submap.ids[i]), submap.frame_id, closure)

@@ -292,3 +292,45 @@ def test_on_fused_gives_the_measurements_of_the_joined_map_as_measured():
     plain.on_fused = lambda robot, seq, ms: seen.__setitem__(seq, ms)
     _run(plain, maps)
     assert all(seen[seq] == (maps[seq - 1],) for seq in seen)  # neither gate nor holding: the submap itself
+
+
+@pytest.mark.parametrize("mode", [JoinMethod.ONLINE_DC, JoinMethod.SEQUENTIAL])
+def test_the_poses_a_star_submap_passes_through_are_joined_not_held(mode):
+    """A star chunk of two steps (frame 2k, poses 2k+1 and 2k+2 = its end, one block per edge): its
+    intermediate pose is uncoupled and new, but it is its own path, not a closure. Held, it waited for
+    a chain end that passed it by: half the trajectory was missing with the gate on."""
+    rng = np.random.default_rng(0)
+    maps = []
+    for k in range(10):
+        f = 2 * k
+        x = np.array([1.0, 0.0, 0.0, 2.0, 0.0, 0.0]) + rng.normal(scale=0.01, size=6)
+        info = np.diag([400.0, 400.0, 900.0, 200.0, 200.0, 500.0])
+        maps.append(LocalMap(2, f, f + 2, np.array([f + 1, f + 2]), np.array([POSE, POSE], dtype=np.int8), x, info, f"s{k}"))
+    for kwargs in ({"hold_closures": True}, {"gate_probability": 0.99999999}):
+        j = Joiner(mode, **kwargs)
+        for seq, m in enumerate(maps, start=1):
+            assert j.offer(m, seq) == [seq]
+        assert sorted(global_result(j.state).pose_ids.tolist()) == list(range(20)) and j.state.held == ()  # 20: the frame
+
+
+def test_a_submap_failing_only_on_its_end_pose_is_joined_and_not_reported_as_gated(caplog):
+    """Holding off, a wrong forward closure 0 -> 3 is fused on arrival; submap 3's end pose then fails the gate.
+    The end pose cannot be split off: it was recorded 'gated whole' with nothing kept out (three false records)."""
+    rng = np.random.default_rng(5)
+    maps = []
+    for k in range(12):
+        x = np.array([1.0, 0.0, 0.0, 3.0, 0.0, 0.0]) + rng.normal(scale=0.01, size=6)
+        if k == 0:
+            x[3:5] += [1.5, -1.0]  # the closure 0 -> 3 is wrong by 1.8 m
+        m = 2 if k + 3 <= 12 else 1
+        maps.append(LocalMap(2, k, k + 1, np.array([k + 1, k + 3])[:m], np.full(m, POSE, dtype=np.int8), x[: 3 * m],
+                             1e4 * np.eye(3 * m), f"star_{k}"))
+    gated = Joiner(JoinMethod.ONLINE_DC, gate_probability=0.99999999, hold_closures=False)
+    plain = Joiner(JoinMethod.ONLINE_DC, hold_closures=False)
+    for seq, m in enumerate(maps, start=1):
+        gated.offer(m, seq)
+        plain.offer(m, seq)
+    assert not any(g.submap == 3 for g in gated.gated)
+    assert "submap 'star_2' fails the gate (NIS 7737.5 > 122.9 for 3 dof) on its end pose only" in caplog.text
+    a, b = global_result(gated.state), global_result(plain.state)
+    assert a.keys.tolist() == b.keys.tolist() and np.allclose(a.x, b.x, atol=1e-12)  # joined as it is, and said so

@@ -285,3 +285,17 @@ def _chained_by_hand(maps: tuple[LocalMap, ...]) -> FloatArray:
             else:
                 values[k] = points_from_frame(dim, frame[:dim], frame[dim:], local)
     return np.concatenate(list(values.values()))
+
+
+def test_a_round_cut_off_by_the_iteration_cap_is_not_converged(city: tuple[LocalMap, ...]) -> None:
+    """It was reported converged (Manhattan capped at 3 steps: 138.44 against the optimum 137.91)."""
+    capped = refine_offline(city[:120], None, RefinerConfig(chi2_rtol=1e-12), max_iterations=1)
+    full = refine_offline(city[:120], None, RefinerConfig(chi2_rtol=1e-12))
+    assert not capped.converged and full.converged
+    assert capped.chi2 > full.chi2 * (1 + 1e-6)
+    refiner = OnlineRefiner(RefinerConfig(max_round_iterations=1, settle_s=0.0, idle_s=0.0))
+    for seq, m in enumerate(city[:40], start=1):
+        refiner.submit(Submission(seq, m, 0.0))
+    refiner.absorb()
+    assert refiner.iterate() and not refiner.settled  # the round ended at the cap, unconverged
+    assert refiner.resume()  # and resumes once the stream has settled, as a round ended at streaming_rtol

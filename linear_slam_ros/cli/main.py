@@ -307,7 +307,9 @@ def _join_command(args: argparse.Namespace, refine_too: bool) -> int:
         )
         return 0
     # with the gate, the objective of what was joined (the gate's splits left out), as the node's refiner has it
-    measurements = fused if gate is not None and islands["n_islands"] == 1 else covered
+    measurements = covered
+    if gate is not None:  # with islands, the main island's part of it (the original maps had the splits back in)
+        measurements = fused if islands["n_islands"] == 1 else maps_within(run.result, fused)
     t0 = time.perf_counter()
     if getattr(args, "refine", False):  # join --refine: the node's refiner, run over the whole stream to convergence
         from linear_slam_ros.evaluation.nonlinear import RefineResult

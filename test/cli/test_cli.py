@@ -366,3 +366,22 @@ def test_g2o_output_holds_the_result_s_poses_only(tmp_path, caplog):
     graph = read_g2o(out / "graph.g2o")
     assert sorted(graph.pose_ids.tolist()) == sorted(read_rows(out / "poses.txt"))  # no vertex written at the origin
     assert "poses without an estimate (other islands, loop closures still held)" in caplog.text
+
+
+def test_refine_with_the_gate_and_islands_refines_what_the_joins_fused(tmp_path, monkeypatch):
+    """With islands, the main island's original maps were refined: the gate's splits were back in the objective."""
+    import linear_slam_ros.cli.main as cli
+    from linear_slam_ros.io.datasets import resolve_dataset_dir
+
+    gap = _subset(resolve_dataset_dir(dataset_archive("Intel")), tmp_path / "gap", [i for i in range(1, 801) if i != 796])
+    refined: list[list[object]] = []
+    real = cli.refine
+    monkeypatch.setattr(cli, "refine", lambda initial, maps, *a, **k: refined.append(list(maps)) or real(initial, maps, *a, **k))
+    out = tmp_path / "o"
+    assert main(["refine", str(gap), "--method", "online-dc", "--gate-probability", "0.99", "--out", str(out)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["n_islands"] > 1 and report["gated"], report.get("n_islands")
+    split = {(g["submap"], v) for g in report["gated"] for v in g["variables"]}
+    for m in refined[0]:
+        seq = int(m.name.split("_")[1].split("/")[0])  # localmap_<i>, or localmap_<i>/closure_<target>
+        assert not any((seq, int(pid)) in split for pid in m.pose_ids.tolist() if "/closure_" not in m.name), m.name

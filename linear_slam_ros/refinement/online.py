@@ -39,7 +39,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core import cholmod, least_squares, solvers
-from linear_slam_ros.core.errors import ConfigError, FrameError, InvalidMapError, LinearSlamError
+from linear_slam_ros.core.errors import ConfigError, InvalidMapError, LinearSlamError
 from linear_slam_ros.core.geometry import (
     angles3,
     points_from_frame,
@@ -241,6 +241,7 @@ class OnlineRefiner:
         self.config = config or RefinerConfig()
         self._clock = clock
         self._pending: list[Submission] = []
+        self._parked: list[Submission] = []  # submaps whose frame pose is not placed yet (another island's)
         self._last_received = -math.inf
         self._linear: LinearEstimate | None = None
         self.n_absorbed = 0
@@ -285,11 +286,18 @@ class OnlineRefiner:
         """Keep the newest linear estimate (older ones are ignored) for the warm start of new variables."""
         if self._linear is None or estimate.n_submaps >= self._linear.n_submaps:
             self._linear = estimate
+            if self._parked:  # it may place their frame poses now (the joiner linked their island)
+                self._pending, self._parked = self._pending + self._parked, []
 
     @property
     def n_pending(self) -> int:
         """Submaps queued and not absorbed yet."""
         return len(self._pending)
+
+    @property
+    def n_parked(self) -> int:
+        """Submaps waiting for their frame pose to be placed (another island's, not linked yet)."""
+        return len(self._parked)
 
     def absorb_due(self) -> bool:
         """Whether queued submaps should be taken in now (``growth`` reached, or ``idle_s`` without arrivals)."""
@@ -340,15 +348,18 @@ class OnlineRefiner:
     def absorb(self) -> int:
         """Take every queued submap in: extend the variables (warm start) and the objective.
 
-        A submap whose frame pose is not among the variables (it cannot be placed) is skipped
-        with a warning and counted in :attr:`n_skipped`.
+        A submap whose frame pose is neither among the variables nor in the linear estimate (a
+        submap after a lost one, another robot's, before the joiner has linked their islands) is
+        parked (:attr:`n_parked`) and taken in by a later absorb once the linear estimate places
+        its frame pose; one of another dimension is skipped with a warning (:attr:`n_skipped`).
 
         Returns:
             The number of submaps absorbed.
         """
-        batch, self._pending = self._pending, []
-        if not batch:
+        if not self._pending:
             return 0
+        # the parked last: the new submaps may hold their frame poses
+        batch, self._pending, self._parked = self._pending + self._parked, [], []
         if self._origin is None:
             self._origin = batch[0].submap.frame_id
             self._dim = batch[0].submap.dim
@@ -359,6 +370,9 @@ class OnlineRefiner:
         self._buf[: self._n_state] = self._x
         rec = _Records()
         taken, chained = self._take_batch(batch, lin, rec)
+        if not taken:  # all parked: nothing changes (the round goes on as it was)
+            self._buf = np.zeros(0)
+            return 0
         for sub in taken:
             self.n_submaps += not sub.extra
             self._last = sub
@@ -444,9 +458,11 @@ class OnlineRefiner:
         rows, columns and frames and the warm start are array operations over the batch.
 
         Returns:
-            The submissions taken (a submap of another dimension, or whose frame pose is not in
-            the refined map, is left out with a warning and counted in :attr:`n_skipped`), and how
-            many of their new variables were chained from their frame poses.
+            The submissions taken (a submap of another dimension is left out with a warning and
+            counted in :attr:`n_skipped`; one whose frame pose is neither in the refined map nor in
+            the linear estimate is parked for a later batch; a frame pose only the linear estimate
+            holds becomes a variable, at that estimate), and how many of their new variables were
+            chained from their frame poses.
         """
         dim, p = self._dim, pose_size(self._dim)
         index, ids, kinds, offsets = self._index, self._ids, self._kinds, self._offsets
@@ -456,21 +472,29 @@ class OnlineRefiner:
         positions: list[int] = []  # per variable of the submaps taken: its variable index (-2: the origin)
         fresh: list[tuple[int, int, int]] = []  # per new variable: (submap taken, place in ``positions``, index)
         n_state = self._n_state
+        from_linear: list[tuple[int, int]] = []  # (state offset, linear offset) of frame poses placed by the estimate
         for sub in batch:
             m = sub.submap
-            try:
-                if m.dim != dim:
-                    raise InvalidMapError(f"submap {m.name!r} is {m.dim}D; the refiner's map is {dim}D")
-                ref = -1
-                if m.frame_id != self._origin:
-                    ref_index = index.get(pose_key(m.frame_id))
-                    if ref_index is None:
-                        raise FrameError(f"frame pose {m.frame_id} of submap {m.name!r} is not in the refined map")
-                    ref = offsets[ref_index]
-            except LinearSlamError as exc:
+            if m.dim != dim:
                 self.n_skipped += 1
-                logger.warning("refiner: submap seq %d left out: %s", sub.seq, exc)
+                logger.warning("refiner: submap seq %d left out: submap %r is %dD; the refiner's map is %dD",
+                               sub.seq, m.name, m.dim, dim)
                 continue
+            ref = -1
+            if m.frame_id != self._origin:
+                frame_key = pose_key(m.frame_id)
+                ref_index = index.get(frame_key)
+                if ref_index is None and lin is not None and frame_key in lin[0]:  # an island the joiner has linked
+                    ref_index = index[frame_key] = len(ids)
+                    ids.append(m.frame_id)
+                    kinds.append(POSE)
+                    offsets.append(n_state)
+                    from_linear.append((n_state, int(lin[2][lin[0][frame_key]])))
+                    n_state += p
+                if ref_index is None:  # nothing places it yet: parked, tried again at the next absorb
+                    self._parked.append(sub)
+                    continue
+                ref = offsets[ref_index]
             for k, var_id, kind in zip(m.keys.tolist(), m.ids.tolist(), m.kinds.tolist(), strict=True):
                 j = index.get(k)
                 if j is None:
@@ -486,6 +510,10 @@ class OnlineRefiner:
             refs.append(ref)
             var_counts.append(m.n_vars)
         self._n_state = n_state
+        if from_linear and lin is not None:
+            self._grow_buffer()
+            for start, at in from_linear:
+                self._buf[start : start + p] = lin[1][at : at + p]
         if not taken:
             return taken, 0
         maps = [sub.submap for sub in taken]
@@ -539,10 +567,7 @@ class OnlineRefiner:
             How many new variables were chained.
         """
         dim, p = self._dim, pose_size(self._dim)
-        if self._n_state > self._buf.size:
-            grown = np.empty(max(2 * self._buf.size, self._n_state))
-            grown[: self._buf.size] = self._buf
-            self._buf = grown
+        self._grow_buffer()
         buf = self._buf
         submap, place, var = new[:, 0], new[:, 1], new[:, 2]
         start = state_offsets[var]
@@ -575,6 +600,13 @@ class OnlineRefiner:
                 local = z[row[points, None] + np.arange(dim)]
                 buf[start[points, None] + np.arange(dim)] = local @ rot + frame[:dim]
         return int(chain.size)
+
+    def _grow_buffer(self) -> None:
+        """Grow the state buffer to hold :attr:`_n_state` scalars (doubling)."""
+        if self._n_state > self._buf.size:
+            grown = np.empty(max(2 * self._buf.size, self._n_state))
+            grown[: self._buf.size] = self._buf
+            self._buf = grown
 
     def _anchored_linear(self) -> tuple[dict[int, int], FloatArray, IntArray] | None:
         """The linear estimate moved rigidly onto the refined solution at their newest common pose.

@@ -147,12 +147,16 @@ def test_errors_name_the_bad_value(city: tuple[LocalMap, ...]) -> None:
         SinkSpec("linear_slam_ros.refinement.worker:no_such_sink").build()
 
 
-def test_a_submap_that_cannot_be_placed_is_left_out(city: tuple[LocalMap, ...]) -> None:
+def test_a_submap_that_cannot_be_placed_yet_waits_for_its_frame_pose(city: tuple[LocalMap, ...]) -> None:
     refiner = OnlineRefiner()
     refiner.submit(Submission(1, city[0], 0.0))
-    refiner.submit(Submission(2, city[10], 0.0))  # its frame pose is not in the map yet
+    refiner.submit(Submission(11, city[10], 0.0))  # its frame pose is not in the map yet
     assert refiner.absorb() == 1
-    assert refiner.n_skipped == 1 and refiner.n_absorbed == 1
+    assert refiner.n_skipped == 0 and refiner.n_absorbed == 1 and refiner.n_parked == 1
+    for seq in range(2, 11):
+        refiner.submit(Submission(seq, city[seq - 1], 0.0))
+    assert refiner.absorb() == 10  # the nine, then the parked one: its frame pose is the ninth's end pose
+    assert refiner.n_parked == 0 and refiner.n_submaps == 11
 
 
 def test_a_submap_of_another_dimension_is_left_out(city: tuple[LocalMap, ...], caplog: pytest.LogCaptureFixture) -> None:
@@ -299,3 +303,41 @@ def test_a_round_cut_off_by_the_iteration_cap_is_not_converged(city: tuple[Local
     refiner.absorb()
     assert refiner.iterate() and not refiner.settled  # the round ended at the cap, unconverged
     assert refiner.resume()  # and resumes once the stream has settled, as a round ended at streaming_rtol
+
+
+def test_submaps_after_a_lost_one_wait_until_the_linear_estimate_places_them(city: tuple[LocalMap, ...]) -> None:
+    """A submap after a lost one is in the frame of a pose the refiner never had: it and every one after it
+    were dropped for good (VicPark200 without submap 50: 49 of 119 refined, reported converged). Parked, they
+    are taken in once the joiner has linked their island and its linear estimate places that pose."""
+    from linear_slam_ros.joining.islands import maps_within
+
+    maps = city[:150]
+    refiner = OnlineRefiner(RefinerConfig(chi2_rtol=1e-13, streaming_rtol=0.0))
+    joiner = Joiner(JoinMethod.ONLINE_DC)
+    fused: list[LocalMap] = []
+
+    def submit(robot: str, seq: int, pieces: tuple[LocalMap, ...]) -> None:
+        fused.extend(pieces)
+        for i, m in enumerate(pieces):
+            refiner.submit(Submission(seq, m, 0.0, extra=i > 0))
+
+    joiner.on_fused = submit
+    for seq, m in enumerate(maps, start=1):
+        if seq == 60:
+            continue  # lost
+        joiner.offer(m, seq)
+        if seq == 61:
+            joiner.flush()  # the gap given up: 61 starts an island
+        refiner.absorb()
+        refiner.iterate()
+    joiner.flush()
+    assert len(joiner.state.islands) == 1  # the joiner linked it back (loop closures)
+    assert refiner.n_parked > 0 and refiner.n_skipped == 0  # waiting, not dropped
+    linear = global_result(joiner.state, OutputFrame.FIRST_POSE)
+    refiner.linear(LinearEstimate.of_map(linear, joiner.state.n_joined))
+    refiner.absorb()
+    while not refiner.iterate():
+        pass
+    assert refiner.n_parked == 0 and refiner.n_submaps == len(maps) - 1
+    offline = refine(linear, maps_within(linear, fused))
+    assert abs(refiner.chi2 - offline.chi2) <= 1e-8 * offline.chi2

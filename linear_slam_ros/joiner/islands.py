@@ -231,6 +231,7 @@ def link_islands(
         return chains
     mine = chains[target].island
     keys = submap.keys.tolist() + [2 * submap.frame_id]
+    linked = False
 
     def shares(chain: Chain) -> bool:
         if chain.end_id is not None and 2 * chain.end_id in keys:  # its newest frame (a result's frame is no variable)
@@ -259,7 +260,35 @@ def link_islands(
         )
         chains = [c if c.island != old else _relabel(c, new) for c in chains]
         mine = new
-    return chains
+        linked = True
+    return _link_grown(chains, mine, result_of, cache) if linked else chains
+
+
+def _link_grown(chains: list[Chain], mine: int, result_of: Callable[[Any], LocalMap | None], cache: IslandCache) -> list[Chain]:
+    """Link the other islands that island ``mine``, just grown by a link, now shares enough with.
+
+    Each was tested against ``mine`` before it grew, if at all: a third robot's island that
+    bridges two others (it shares a feature with each) joins one of them, and the grown island
+    then shares enough with the other, which no submap may touch again. Tested through the islands'
+    unions, only for an island whose chains share a variable with ``mine``'s (their key sets,
+    cached), until nothing changes.
+    """
+    while True:
+        grown = frozenset().union(*(cache.keys(result_of, c) for c in chains if c.island == mine))
+        for label in sorted({c.island for c in chains} - {mine}):
+            if not any(grown & cache.keys(result_of, c) for c in chains if c.island == label):
+                continue
+            theirs, whole = island_result(chains, label, result_of, cache), island_result(chains, mine, result_of, cache)
+            link = find_link(theirs, whole) if theirs is not None and whole is not None else None
+            if link is None:
+                continue
+            new, old = min(mine, label), max(mine, label)
+            logger.info("island %d, grown, links island %d through %s: they are one island now", mine, label, link.describe())
+            chains = [c if c.island != old else _relabel(c, new) for c in chains]
+            mine = new
+            break
+        else:
+            return chains
 
 
 def collapse_frozen(

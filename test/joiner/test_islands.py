@@ -316,3 +316,36 @@ def test_an_arrival_does_not_form_another_robot_s_map_to_see_whether_it_links(mo
         j.offer(ma, i, "a")
         j.offer(qualify(mb, 1), i, "b")
     assert len(j.state.islands) == 2 and j.state.n_joined == 2 * len(a) and formed == []
+
+
+def test_a_third_island_bridging_two_links_all_three():
+    """Robot b shares feature 1 with island A, robot c feature 2; then c measures b's pose: B and C are one
+    island, which shares features 1 and 2 with A (enough in 2D). A, tested before B grew and never touched
+    again, was left apart."""
+    from linear_slam_ros.evaluation.runner import run_joiner
+    from linear_slam_ros.evaluation.synthetic import World, exact_map
+
+    s = ROBOT_ID_STRIDE
+    rng = np.random.default_rng(0)
+    poses = {0: [0, 0, 0], 1: [2, 0, 0.3], 2: [4, 1, 0.6], s: [0, 5, 2.0], s + 1: [1, 6, 2.5],
+             2 * s: [6, 5, -1.0], 2 * s + 1: [5, 6, -2.9], 2 * s + 2: [3, 7, 3.1]}
+    features = {1: [1, 3], 2: [5, 3], 10: [2, -2], 11: [3, -1], 20: [-1, 6], 21: [0, 8], 30: [7, 7], 31: [6, 8]}
+    ids = sorted(poses)
+    where = {k: i for i, k in enumerate(ids)}
+    world = World(2, np.array([poses[k] for k in ids], float), {f: np.array(v, float) for f, v in features.items()})
+
+    def submap(frame, pose_ids, feature_ids, end, name):
+        m = exact_map(world, where[frame], [where[p] for p in pose_ids], feature_ids, rng, where[end], name)
+        real = np.array([ids[int(i)] if k == 0 else int(i) for i, k in zip(m.ids, m.kinds, strict=True)])
+        return m.replace(ids=real, frame_id=frame, end_id=end)
+
+    stream = [
+        ("a", 1, submap(0, [1], [10, 11, 1, 2], 1, "a1")),
+        ("a", 2, submap(1, [2], [10, 11], 2, "a2")),
+        ("b", 1, submap(s, [s + 1], [1, 20, 21], s + 1, "b1")),  # feature 1 of A: not enough alone
+        ("c", 1, submap(2 * s, [2 * s + 1], [2, 30, 31], 2 * s + 1, "c1")),  # feature 2 of A: not enough alone
+        ("c", 2, submap(2 * s + 1, [2 * s + 2, s + 1], [30], 2 * s + 2, "c2")),  # b's pose: B and C linked
+    ]
+    _, saved = run_joiner([m for _, _, m in stream], "online-dc", seqs=[q for _, q, _ in stream],
+                          robots=[r for r, _, _ in stream])
+    assert [(i.label, i.n_submaps) for i in saved.state.islands] == [(0, 5)]

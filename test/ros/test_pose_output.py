@@ -108,8 +108,8 @@ def test_pose_carries_the_exact_covariance_and_save_map_writes_tum(node, start_j
     last = np.array(lines[-1][1:], dtype=float)
     assert last[:2] == pytest.approx(pose_expected[:2], abs=1e-9) and last[2] == 0.0
     assert np.linalg.norm(last[3:]) == pytest.approx(1.0) and last[6] >= 0.0
-    code, _ = joiner.stop()
-    assert code == 0
+    code, output = joiner.stop()
+    assert code == 0, output[-3000:]
 
 
 def test_publish_tf_broadcasts_the_newest_pose_or_says_why_not(node, start_joiner):

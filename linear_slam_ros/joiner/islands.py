@@ -253,15 +253,19 @@ def link_islands(
             link = find_link(theirs, whole) if theirs is not None and whole is not None else None
         if link is None:
             continue
-        new, old = min(mine, label), max(mine, label)
         logger.info(
             "submap %r links island %d (chain %d) with island %d through %s: they are one island now",
             submap.name, mine, target, label, link.describe(),
         )
-        chains = [c if c.island != old else _relabel(c, new) for c in chains]
-        mine = new
+        chains, mine = _merge_islands(chains, mine, label)
         linked = True
     return _link_grown(chains, mine, result_of, cache) if linked else chains
+
+
+def _merge_islands(chains: list[Chain], mine: int, label: int) -> tuple[list[Chain], int]:
+    """Relabel islands ``mine`` and ``label`` as one, under the smaller label; return the chains and that label."""
+    new, old = min(mine, label), max(mine, label)
+    return [c if c.island != old else _relabel(c, new) for c in chains], new
 
 
 def _link_grown(chains: list[Chain], mine: int, result_of: Callable[[Any], LocalMap | None], cache: IslandCache) -> list[Chain]:
@@ -282,10 +286,8 @@ def _link_grown(chains: list[Chain], mine: int, result_of: Callable[[Any], Local
             link = find_link(theirs, whole) if theirs is not None and whole is not None else None
             if link is None:
                 continue
-            new, old = min(mine, label), max(mine, label)
             logger.info("island %d, grown, links island %d through %s: they are one island now", mine, label, link.describe())
-            chains = [c if c.island != old else _relabel(c, new) for c in chains]
-            mine = new
+            chains, mine = _merge_islands(chains, mine, label)
             break
         else:
             return chains

@@ -840,10 +840,11 @@ def gate_submap(
     worst = tuple(sorted(per_var, key=lambda v: -v.nis)[:5])
     worst_threshold = var_thresholds[worst[0].dof]
     n_common = len(common)
+    passed = GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap,
+                        variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
+                        variables=tuple(per_var))
     if not fails(total, dof, per_var):
-        return GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap,
-                          variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
-                          variables=tuple(per_var))
+        return passed
     limit = max(1, int(MAX_SPLIT_FRACTION * len(common)))
     split: list[VariableNis] = []
     current, current_vars = total, per_var
@@ -867,9 +868,7 @@ def gate_submap(
             "submap %r fails the gate (NIS %.1f > %.1f for %d dof) on its end pose only, which cannot be split off: "
             "joined as it is", submap.name, total, threshold, dof,
         )
-        return GateResult(probability, total, dof, threshold, worst, nis_after=total, dof_after=dof, submap=submap,
-                          variance_factor=scale.value, variable_threshold=worst_threshold, n_common=n_common,
-                          variables=tuple(per_var))
+        return passed
     if rejected:  # everything it says about the map is dropped; its new variables still extend the chain
         split = [v for b, v in enumerate(per_var) if removable[b]]
         current, dof_after = 0.0, int(sizes[~removable].sum())

@@ -11,6 +11,7 @@ the yaw is ``phi``. Covariances are reordered accordingly (:func:`ros_pose_covar
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from typing import NamedTuple
 
 import numpy as np
@@ -42,6 +43,16 @@ FloatArray = npt.NDArray[np.float64]
 ELLIPSE_SIGMA = 2.0
 """Covariance ellipses are drawn at this many standard deviations."""
 
+MIN_MARKER_SCALE = 1e-3
+"""Smallest axis of a covariance ellipse, m: a variance of zero (a feature-only map's frame
+features, fixed in their own frame) is drawn this thin, since RViz refuses a marker of scale 0."""
+
+
+def stamp_msg(nanoseconds: int) -> Time:
+    """Return a time in nanoseconds as a ``builtin_interfaces/Time``."""
+    sec, nanosec = divmod(nanoseconds, 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
 
 def pose_to_msg(dim: int, pose: FloatArray) -> Pose:
     """Return a ``geometry_msgs/Pose`` of a dataset-convention pose."""
@@ -66,8 +77,16 @@ def pose_msgs(dim: int, poses: FloatArray) -> list[Pose]:
     ]
 
 
-def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
-    """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``, by pose id."""
+def path_msg(global_map: LocalMap, frame_id: str, stamp: Time, pose_stamps: Mapping[int, int] | None = None) -> Path:
+    """Return the robot poses of a map (in the frame of its first pose) as a ``nav_msgs/Path``, by pose id.
+
+    Args:
+        global_map: the map.
+        frame_id: ``header.frame_id`` of the path and of each pose.
+        stamp: the path's stamp, and that of each pose without one of its own.
+        pose_stamps: ``{pose id: stamp (ns)}`` of the poses whose time is known (the node: each
+            joined submap's end pose); a pose not in it carries ``stamp``.
+    """
     header = Header(stamp=stamp, frame_id=frame_id)
     dim = global_map.dim
     pose_vars = np.flatnonzero(global_map.kinds == POSE)
@@ -76,8 +95,10 @@ def path_msg(global_map: LocalMap, frame_id: str, stamp: Time) -> Path:
     if pose_vars.size:
         poses[1:] = global_map.x[global_map.scalar_index(pose_vars)].reshape(-1, pose_size(dim))
     order = np.argsort(ids, kind="stable")
+    own = pose_stamps or {}
+    headers = [Header(stamp=stamp_msg(own[i]), frame_id=frame_id) if i in own else header for i in ids[order].tolist()]
     msg = Path(header=header)
-    msg.poses = [PoseStamped(header=header, pose=p) for p in pose_msgs(dim, poses[order])]
+    msg.poses = [PoseStamped(header=h, pose=p) for h, p in zip(headers, pose_msgs(dim, poses[order]), strict=True)]
     return msg
 
 
@@ -180,7 +201,8 @@ def point_markers(
     markers_points.color = ColorRGBA(r=0.1, g=0.3, b=0.9, a=1.0)
     for x in points.values():
         markers_points.points.append(Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0))
-    markers = [Marker(header=header, ns="features", action=Marker.DELETEALL), markers_points]
+    # an empty namespace: RViz 2 deletes only the markers of a DELETEALL's namespace when it has one
+    markers = [Marker(header=header, ns="", action=Marker.DELETEALL), markers_points]
     for fid, x in points.items() if covariances else []:
         cov = covariances.get(fid) if covariances else None
         if cov is None:
@@ -191,7 +213,7 @@ def point_markers(
             vectors[:, 0] = -vectors[:, 0]
         m = Marker(header=header, ns="covariance", id=len(markers) - 2, action=Marker.ADD, text=str(fid))
         m.pose.position = Point(x=float(x[0]), y=float(x[1]), z=float(x[2]) if d == 3 else 0.0)
-        axes = 2.0 * ELLIPSE_SIGMA * np.sqrt(values)  # full axis lengths
+        axes = np.maximum(2.0 * ELLIPSE_SIGMA * np.sqrt(values), MIN_MARKER_SCALE)  # full axis lengths
         if d == 2:
             m.type = Marker.CYLINDER
             full = np.eye(3)
@@ -253,15 +275,19 @@ class MapViews(NamedTuple):
 
 
 @functools.singledispatch
-def map_views(joined: object, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+def map_views(
+    joined: object, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int,
+    pose_stamps: Mapping[int, int] | None = None,
+) -> MapViews:
     """Return the viewing messages of a joined map, in ``frame_id``.
 
     Args:
-        joined: the map (a type registered below).
+        joined: the map (a type registered below; a feature-only map is drawn in its own frame).
         first_pose_id: the pose whose frame ``frame_id`` names (pose maps are moved there).
         frame_id: ``header.frame_id`` of the messages.
         stamp: their stamp.
         ellipse_max_state: no covariance ellipses above this many state scalars.
+        pose_stamps: ``{pose id: stamp (ns)}``: the path's poses whose time is known (:func:`path_msg`).
 
     Raises:
         TypeError: no views are registered for the map's type.
@@ -270,18 +296,24 @@ def map_views(joined: object, first_pose_id: int | None, frame_id: str, stamp: T
 
 
 @map_views.register
-def _(joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+def _(
+    joined: LocalMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int,
+    pose_stamps: Mapping[int, int] | None = None,
+) -> MapViews:
     first = joined.frame_id if first_pose_id is None else first_pose_id
     if joined.state_dim <= ellipse_max_state:  # the ellipses need the information in the first frame too
         in_first = joined if joined.frame_id == first else change_frame(joined, first)
     else:
         in_first = estimate_in_frame(joined, first)
     markers = feature_markers(in_first, frame_id, stamp, feature_covariances(in_first, ellipse_max_state))
-    return MapViews(path_msg(in_first, frame_id, stamp), markers)
+    return MapViews(path_msg(in_first, frame_id, stamp, pose_stamps), markers)
 
 
 @map_views.register
-def _(joined: FeatureMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int) -> MapViews:
+def _(
+    joined: FeatureMap, first_pose_id: int | None, frame_id: str, stamp: Time, ellipse_max_state: int,
+    pose_stamps: Mapping[int, int] | None = None,
+) -> MapViews:
     covs = feature_map_covariances(joined, ellipse_max_state)
     return MapViews(None, point_markers(joined.dim, joined.positions(), frame_id, stamp, covs))
 

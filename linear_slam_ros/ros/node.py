@@ -41,6 +41,8 @@ from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.core.runtime import SHARED_MACHINE_BLAS_THREADS, release_memory, set_blas_threads, tune_allocator
 from linear_slam_ros.core.timing import latency, peak_rss_mb
+from linear_slam_ros.feature_only.frames import change_feature_frame
+from linear_slam_ros.feature_only.maps import FeatureMap
 from linear_slam_ros.io.results import write_map, write_tum_stamped
 from linear_slam_ros.joiner.config import JoinerConfig, OutputFrame, ParameterDeclaration, parameter_declarations
 from linear_slam_ros.joiner.joiner import Joiner, JoinerState, SavedJoiner, current_pose, global_result, robot_poses
@@ -58,7 +60,7 @@ from linear_slam_ros.ros.pose_output import PoseTracker
 from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbound_qos, latched_qos
 from linear_slam_ros.ros.raw_publish import publish_serialized
 from linear_slam_ros.ros.spin import print_usage_if_asked
-from linear_slam_ros.ros.tf_output import TF_PARAMETERS, tf_sender
+from linear_slam_ros.ros.tf_output import TF_PARAMETERS, TfOutput, odom_lookup, tf_sender
 from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
 from msg_adapters.cdr import to_cdr
 from msg_adapters.global_map import encode_empty_global, encode_global
@@ -181,6 +183,9 @@ class JoinerNode(Node):
         # includes, the oldest one's arrival time (s, monotonic)
         self._pending_pose: dict[str, tuple[JoinerState, list[Any], float]] = {}
         self._views_stale = False  # path and features skipped for want of a subscriber (README, "Topics")
+        self._view_frame: tuple[int, ...] | None = None  # feature-only: the features whose frame the views keep
+        self._pose_cleared = False  # ~/reset: the latched pose still holds the cleared map's (README, "Topics")
+        self._tf: TfOutput | None = None  # publish_tf (set below)
         self._views_skipped = 0  # publications that skipped them
         self._summary_counts: tuple[float, ...] | None = None  # what the last summary line said
         self._diag_rejected = 0  # rejections counted at the last /diagnostics
@@ -221,12 +226,10 @@ class JoinerNode(Node):
             {robot: self.create_publisher(PoseWithCovarianceStamped, f"{robot}/pose", latched) for robot in self._slots}
             if config.robots else {"": self.create_publisher(PoseWithCovarianceStamped, "pose", latched)}
         )
-        # publish_tf: map_frame -> base_frame at the newest pose (tf2_ros where installed; README, TF)
-        self._tf_send, self._base_frame = None, str(self.get_parameter("base_frame").value)
+        # publish_tf: map_frame -> odom_frame or base_frame at the newest pose (tf2_ros where installed; README, TF)
+        self._base_frame = str(self.get_parameter("base_frame").value)
         if self.get_parameter("publish_tf").value:
-            self._tf_send, how = tf_sender(self)
-            log = self.get_logger().info if self._tf_send is not None else self.get_logger().warning
-            log(f"publish_tf: {how}" if self._tf_send is not None else f"publish_tf is set but no TF is published: {how}")
+            self._tf = self._tf_output(str(self.get_parameter("odom_frame").value))
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # The executor (single-threaded: main) takes the arrivals and the services; the outputs, the
         # snapshots and the summary run on their own thread (README, "Scale").
@@ -391,7 +394,7 @@ class JoinerNode(Node):
                     self._timeline[s][1] = seconds * 1e3
         self._version += 1
         stamps = [self._data_stamps.pop(s, None) for s in joined]
-        self._poses.joined(joined, [self._seconds(s) for s in stamps])
+        self._poses.joined(joined, [self._nanoseconds(s) for s in stamps])
         if stamps[-1] is not None:
             self._output_stamp = stamps[-1]
         return self.joiner.state
@@ -490,6 +493,7 @@ class JoinerNode(Node):
             self._version += 1
             self._forget_submaps()
             self._poses.reset()
+            self._pose_cleared = True
         if self.refiner is not None:  # the refiner process ends (tested) and a fresh one starts
             with self._lock:
                 self._refine_waiting.clear()
@@ -503,6 +507,9 @@ class JoinerNode(Node):
         """Forget the per-submap records of the map being replaced (reset or load; under the joining lock)."""
         self._arrived.clear()
         self._pose_seq.clear()
+        self._view_frame = None  # under the output lock too (reset, load)
+        if self._tf is not None:  # the next map's stamps may start earlier
+            self._tf.reset()
         self._data_stamps.clear()
         self._output_stamp = None
         self._deferred_pose = None
@@ -512,7 +519,7 @@ class JoinerNode(Node):
         with self._lock:
             state = self.joiner.state
             saved = self.joiner.save()
-            pose_stamps = dict(self._poses.pose_stamps)
+            pose_stamps = {pid: ns * 1e-9 for pid, ns in self._poses.pose_stamps.items()}
         folder = Path(self.config.save_directory)
         try:
             joined = global_result(state, OutputFrame.FIRST_POSE)
@@ -701,15 +708,31 @@ class JoinerNode(Node):
         dim = PoseTracker.pose_dim(pose)
         frame = self.config.map_frame
         self._pose_pubs[robot].publish(pose_with_covariance_msg(dim, pose, cov, frame, stamp))
-        if self._tf_send is not None:
+        if self._tf is not None:
             child = f"{robot}/{self._base_frame}" if robot else self._base_frame
-            self._tf_send(transform_msg(dim, pose, frame, child, stamp))
+            self._tf.publish(transform_msg(dim, pose, frame, child, stamp))
 
-    def _seconds(self, stamp: Stamp | None) -> float:
-        """A submap's stamp in seconds, the node's clock when it is zero or missing (the TUM trajectory's time)."""
+    def _tf_output(self, odom_frame: str) -> TfOutput | None:
+        """Return the TF output of ``publish_tf``, or ``None`` (with a warning) when nothing can send it here."""
+        send, how = tf_sender(self)
+        lookup, how_odom = odom_lookup(self) if odom_frame and send is not None else (None, "")
+        if send is None or (odom_frame and lookup is None):
+            self.get_logger().warning(f"publish_tf is set but no TF is published: {how if send is None else how_odom}")
+            return None
+        base = self._base_frame
+        parent = f"{odom_frame} (REP-105, with the odometry's {odom_frame} -> {base})" if odom_frame else base
+        self.get_logger().info(f"publish_tf: {self.config.map_frame} -> {parent}, by {how}")
+
+        def warn(message: str) -> None:
+            self.get_logger().warning(message, throttle_duration_sec=10.0)
+
+        return TfOutput(send, odom_frame, lookup, warn)
+
+    def _nanoseconds(self, stamp: Stamp | None) -> int:
+        """A submap's stamp in ns, the node's clock when it is zero or missing (its end pose's time: ``path``, ``poses.tum``)."""
         if stamp is None or (stamp.sec, stamp.nanosec) == (0, 0):
-            return self.get_clock().now().nanoseconds * 1e-9
-        return stamp.sec + stamp.nanosec * 1e-9
+            return int(self.get_clock().now().nanoseconds)
+        return stamp.sec * 1_000_000_000 + stamp.nanosec
 
     def _stamp_msg(self) -> Any:
         """:meth:`_stamp` as a ``builtin_interfaces/Time``."""
@@ -804,6 +827,10 @@ class JoinerNode(Node):
             empty = encode_empty_global(state.strategy.result_type, state.last_seq or 0, self._stamp(), stats)
             publish_serialized(self.pub_global, to_cdr(empty))
             views = empty_views(config.map_frame, stamp)
+            if self._pose_cleared:  # the latched pose is the cleared map's: now unknown, at the new map's origin
+                self._pose_cleared = False
+                for publisher in self._pose_pubs.values():
+                    publisher.publish(pose_with_covariance_msg(2, np.zeros(3), None, config.map_frame, stamp))
         else:
             joined = global_result(state, config.output_frame)
             if joined is None:  # feature-only: no group defines a feature frame yet
@@ -836,7 +863,26 @@ class JoinerNode(Node):
         return self.pub_path.get_subscription_count() > 0 or self.pub_markers.get_subscription_count() > 0
 
     def _map_views(self, joined: Any, state: JoinerState, stamp: Time) -> MapViews:
-        return map_views(joined, state.first_pose_id, self.config.map_frame, stamp, self.config.ellipse_max_state)
+        if isinstance(joined, FeatureMap):
+            joined = self._in_view_frame(joined)
+        with self._lock:
+            pose_stamps = dict(self._poses.pose_stamps)
+        return map_views(joined, state.first_pose_id, self.config.map_frame, stamp, self.config.ellipse_max_state, pose_stamps)
+
+    def _in_view_frame(self, feature_map: FeatureMap) -> FeatureMap:
+        """A feature-only map in the frame of the features that defined the first one viewed (the global map's
+        frame features change at merges: drawn in its own frame, the whole map would move at every update)."""
+        if self._view_frame is None:
+            self._view_frame = feature_map.frame_ids
+        try:
+            return change_feature_frame(feature_map, self._view_frame)
+        except LinearSlamError as exc:
+            self.get_logger().warning(
+                f"features: cannot keep the frame of features {list(self._view_frame)} ({exc}); "
+                f"drawn in the map's frame {list(feature_map.frame_ids)} from now on"
+            )
+            self._view_frame = feature_map.frame_ids
+            return feature_map
 
     def _send_views(self, views: MapViews | None) -> None:
         """Publish ``path`` (when the map has poses) and ``features``; ``None``: skipped for want of a subscriber."""
@@ -923,6 +969,10 @@ class JoinerNode(Node):
             status.values.append(KeyValue(key=f"{what}_cpu_seconds_total", value=f"{seconds:g}"))
         # the exact pose covariance's cost, on the output thread (README, pose)
         status.values.append(KeyValue(key="pose_cov_exact_cpu_seconds_total", value=f"{self._poses.exact_seconds:g}"))
+        if self._tf is not None:  # transforms not sent: a stamp already sent, no odometry at the stamp (README, TF)
+            status.values.append(KeyValue(key="tf_sent", value=str(self._tf.n_sent)))
+            status.values.append(KeyValue(key="tf_repeated_stamp", value=str(self._tf.n_repeated)))
+            status.values.append(KeyValue(key="tf_no_odometry", value=str(self._tf.n_no_odometry)))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 

@@ -14,7 +14,7 @@ No ROS here: the node calls a :class:`PoseTracker` under its joining lock (excep
   joined since (dead reckoning: each submap's end-pose marginal, a small Cholesky, and the
   composition Jacobians) was measured at 0.33 ms of CPU per submap on VicPark200, 58 % of the
   joins' own CPU time, against a budget of a few per cent.
-- Each joined submap's stamp is kept for its end pose (``~/save_map``'s ``poses.tum``).
+- Each joined submap's stamp is kept for its end pose (``path`` and ``~/save_map``'s ``poses.tum``).
 """
 
 from __future__ import annotations
@@ -41,12 +41,12 @@ class PoseTracker:
     """End poses of submaps between arrival and join, the newest exact covariance, and the pose stamps.
 
     Attributes:
-        pose_stamps: ``{end pose id: stamp (s)}`` of every joined submap with an end pose (its
+        pose_stamps: ``{end pose id: stamp (ns)}`` of every joined submap with an end pose (its
             message stamp; the caller's clock when that is zero).
         exact_seconds: CPU seconds spent on exact covariances (output thread).
     """
 
-    pose_stamps: dict[int, float] = field(default_factory=dict)
+    pose_stamps: dict[int, int] = field(default_factory=dict)
     exact_seconds: float = 0.0
     _end_ids: dict[int, int | None] = field(default_factory=dict)
     _exact: FloatArray | None = None
@@ -58,8 +58,8 @@ class PoseTracker:
         """Record the end pose of a submap that will be offered to the joiner."""
         self._end_ids[seq] = end_id
 
-    def joined(self, seqs: list[int], stamps: list[float]) -> None:
-        """Record the stamps (s) of the submaps just joined, one per sequence number, for their end poses."""
+    def joined(self, seqs: list[int], stamps: list[int]) -> None:
+        """Record the stamps (ns) of the submaps just joined, one per sequence number, for their end poses."""
         for seq, stamp in zip(seqs, stamps, strict=True):
             end_id = self._end_ids.pop(seq, None)
             if end_id is not None:

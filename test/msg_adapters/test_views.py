@@ -80,3 +80,48 @@ def test_feature_markers_have_distinct_ids_when_feature_ids_exceed_int32():
     assert [int(m.text) for m in ellipses] == ids
     assert [m.pose.position.x for m in ellipses] == [0.0, 1.0, 2.0]
     assert markers[0].action == markers[0].DELETEALL
+
+
+def test_the_deleteall_of_a_marker_array_has_no_namespace():
+    """RViz 2 deletes only a DELETEALL's namespace when it has one: the ellipses (``covariance``) of an earlier
+    array stayed on screen once the map passed ``ellipse_max_state`` (review of session 26)."""
+    from msg_adapters.views import empty_views, point_markers
+
+    points = {3: np.array([1.0, 2.0]), 4: np.array([3.0, 4.0])}
+    arrays = [point_markers(2, points, "map", STAMP, {3: np.eye(2), 4: np.eye(2)}), empty_views("map", STAMP).markers]
+    for array in arrays:
+        deletes = [m for m in array.markers if m.action == m.DELETEALL]
+        assert [m.ns for m in deletes] == [""] and array.markers[0] is deletes[0]
+
+
+def test_ellipses_of_zero_variance_are_drawn_thin_not_with_a_zero_scale():
+    """A feature-only map's frame features have zero variance along their fixed coordinates; RViz refuses a
+    marker with a zero scale."""
+    from msg_adapters.views import MIN_MARKER_SCALE, point_markers
+
+    points = {1: np.zeros(2), 2: np.array([5.0, 0.0]), 3: np.array([1.0, 1.0])}
+    covariances = {1: np.zeros((2, 2)), 2: np.diag([0.0, 0.25]), 3: np.diag([0.04, 0.09])}
+    ellipses = [m for m in point_markers(2, points, "map", STAMP, covariances).markers if m.ns == "covariance"]
+    scales = [sorted((m.scale.x, m.scale.y)) for m in ellipses]
+    assert scales[0] == [MIN_MARKER_SCALE, MIN_MARKER_SCALE]
+    assert scales[1] == [MIN_MARKER_SCALE, pytest.approx(4.0 * 0.5)]  # full axis: 2 * 2 sigma
+    assert scales[2] == [pytest.approx(4.0 * 0.2), pytest.approx(4.0 * 0.3)]
+
+
+def test_path_poses_carry_their_own_stamps_where_known(rng):
+    """evo and other trajectory tools read each PoseStamped's stamp from a recorded ``path``."""
+    from linear_slam_ros.core.local_map import LocalMap
+    from msg_adapters.views import map_views, path_msg
+
+    ids = np.array([9, 1, 4, 2, 7])  # poses after the frame pose 0, not in id order
+    joined = LocalMap(2, 0, 7, ids, np.zeros(5, dtype=np.int8), rng.normal(size=15), np.eye(15))
+    pose_ids = sorted([joined.frame_id, *joined.ids[joined.kinds == 0].tolist()])
+    stamps = {pose_ids[2]: 1_700_000_000_123_456_789, pose_ids[-1]: 5_000_000_001}
+    msg = path_msg(joined, "map", STAMP, stamps)
+    got = [(p.header.stamp.sec, p.header.stamp.nanosec) for p in msg.poses]
+    assert got[2] == (1_700_000_000, 123_456_789) and got[-1] == (5, 1)  # to the nanosecond
+    assert all(g == (12, 345) for k, g in enumerate(got) if k not in (2, len(got) - 1))  # others: the path's stamp
+    assert all(p.header.frame_id == "map" for p in msg.poses)
+    assert [(p.header.stamp.sec, p.header.stamp.nanosec) for p in path_msg(joined, "map", STAMP).poses] == [(12, 345)] * len(got)
+    views = map_views(joined, 0, "map", STAMP, 0, stamps)
+    assert [(p.header.stamp.sec, p.header.stamp.nanosec) for p in views.path.poses] == got

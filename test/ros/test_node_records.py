@@ -69,7 +69,7 @@ def test_submaps_joined_by_the_reorder_timeout_are_recorded_as_on_arrival(make_n
     assert node.joiner.state.n_joined == 4
     assert len(sent) == before + 1 and sent[-1][0] == ""  # the newest pose, at once
     assert node._output_stamp == Stamp(1005, 0) and not node._data_stamps  # the outputs carry 5's stamp
-    assert sorted(node._poses.pose_stamps.values()) == [1001.0, 1002.0, 1004.0, 1005.0]  # poses.tum has them
+    assert sorted(node._poses.pose_stamps.values()) == [s * 10**9 for s in (1001, 1002, 1004, 1005)]  # path, poses.tum
 
 
 def test_a_loaded_map_replaces_the_records_of_the_map_it_replaces(make_node, maps, tmp_path):
@@ -111,3 +111,145 @@ def test_a_global_map_of_an_older_state_does_not_overwrite_a_robot_s_newer_pose(
     robot_a = [pose for robot, pose, _ in sent if robot == "a"]
     np.testing.assert_allclose(robot_a[-1], newest, atol=0.5)  # never back to the first submap's pose
     assert not np.allclose(robot_a[-1], robot_a[0], atol=0.5)
+
+
+def _wait_for(condition, timeout: float = 5.0) -> bool:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.02)
+    return condition()
+
+
+def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps, monkeypatch):
+    """The arrival's pose and the global map's of the same submap both went to /tf with one stamp (review of
+    session 26); with ``odom_frame`` the node sends map -> odom (REP-105), composed with the odometry."""
+    from geometry_msgs.msg import TransformStamped
+
+    from linear_slam_ros.ros.tf_output import map_to_odom
+    from msg_adapters.views import transform_msg
+
+    transforms: list[TransformStamped] = []
+    monkeypatch.setattr(node_module, "tf_sender", lambda node: (transforms.append, "a test sender"))
+    def lookup(odom_frame, base_frame, stamp):
+        assert (odom_frame, base_frame) == ("odom", "robot")
+        return odom_base
+
+    monkeypatch.setattr(node_module, "odom_lookup", lambda node: (lookup, "a test lookup"))
+    odom_base = transform_msg(2, np.array([0.5, -1.0, 0.2]), "odom", "robot", Stamp(0, 0))
+    for odom_frame in ("", "odom"):
+        transforms.clear()
+        node, sent = make_node(publish_tf=True, base_frame="robot", odom_frame=odom_frame, publish_rate=50.0)
+        for seq in range(1, 7):
+            node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
+            node._flush_poses()
+            assert _wait_for(lambda s=seq: sum(1 for _, _, st in sent if st == (1000 + s, 0)) >= 2)  # arrival + map
+        stamps = [(t.header.stamp.sec, t.header.stamp.nanosec) for t in transforms]
+        assert stamps == [(1000 + seq, 0) for seq in range(1, 7)]  # each stamp once, in order
+        assert {(t.header.frame_id, t.child_frame_id) for t in transforms} == {("map", odom_frame or "robot")}
+        for t in transforms:  # the first pose sent at that stamp (the arrival's)
+            first = next(pose for _, pose, st in sent if st == (t.header.stamp.sec, t.header.stamp.nanosec))
+            expected = transform_msg(2, first, "map", "robot", t.header.stamp)
+            if odom_frame:
+                expected = map_to_odom(expected, odom_base)
+            for got, want in ((t.transform.translation, expected.transform.translation),
+                              (t.transform.rotation, expected.transform.rotation)):
+                np.testing.assert_allclose([got.x, got.y, got.z], [want.x, want.y, want.z], atol=1e-12)
+
+
+def test_without_an_odometry_buffer_odom_frame_sends_no_tf(make_node, monkeypatch):
+    monkeypatch.setattr(node_module, "tf_sender", lambda node: (print, "a test sender"))
+    monkeypatch.setattr(node_module, "odom_lookup", lambda node: (None, "odom_frame needs tf2_ros (its buffer)"))
+    node, _ = make_node(publish_tf=True, odom_frame="odom")
+    assert node._tf is None
+
+
+def test_odom_lookup_needs_tf2_ros(rclpy_session):
+    import importlib.util
+
+    from rclpy.node import Node
+
+    from linear_slam_ros.ros.tf_output import odom_lookup
+
+    node = Node(f"t{uuid.uuid4().hex[:8]}")
+    try:
+        lookup, how = odom_lookup(node)
+        if importlib.util.find_spec("tf2_ros") is None:  # the PyPI wheels: no tf2 package
+            assert lookup is None and how == "odom_frame needs tf2_ros (its buffer), which cannot be imported"
+        else:
+            assert callable(lookup) and how == "tf2_ros buffer"
+    finally:
+        node.destroy_node()
+
+
+class _Latched:
+    def __init__(self) -> None:
+        self.messages: list = []
+
+    def publish(self, msg) -> None:
+        self.messages.append(msg)
+
+
+def test_reset_replaces_the_latched_pose_by_an_unknown_one(make_node, maps):
+    """After ``~/reset`` a late subscriber got the cleared map's pose and covariance beside an empty map
+    (review of session 26)."""
+    node, sent = make_node(publish_rate=50.0)
+    latched = node._pose_pubs[""] = _Latched()
+    for seq in (1, 2, 3):
+        node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
+        node._flush_poses()
+    assert _wait_for(lambda: len(latched.messages) >= 4 and latched.messages[-1].pose.covariance[0] > 0.0)  # the map's
+    assert _trigger(node._on_reset).success
+    assert _wait_for(lambda: latched.messages[-1].pose.covariance[0] == -1.0)
+    cleared = latched.messages[-1]
+    assert not np.array(cleared.pose.covariance)[1:].any() and cleared.header.frame_id == "map"
+    p, q = cleared.pose.pose.position, cleared.pose.pose.orientation
+    assert (p.x, p.y, p.z, q.x, q.y, q.z, q.w) == (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    n = len(latched.messages)
+    time.sleep(0.3)  # said once, not at every publication of the empty map
+    assert len(latched.messages) == n
+
+
+def test_feature_only_views_keep_the_frame_of_the_first_map_viewed(make_node):
+    """The global feature-only map's frame features change at merges: drawn in its own frame, the whole map
+    moved 100 m and more at every update (review of session 26)."""
+    from linear_slam_ros.feature_only.frames import change_feature_frame
+    from linear_slam_ros.feature_only.maps import FeatureMap
+
+    fmap = _feature_map(np.random.default_rng(5))
+    node, _ = make_node(map_type="feature-only")
+    assert node._in_view_frame(fmap) is fmap
+    other = change_feature_frame(fmap, fmap.ids[:2].tolist())
+    drawn = node._in_view_frame(other)
+    assert drawn.frame_ids == fmap.frame_ids
+    for fid, position in fmap.positions().items():
+        np.testing.assert_allclose(drawn.positions()[fid], position, atol=1e-9)
+    stranger = FeatureMap(2, (10**6, 10**6 + 1), np.zeros(0, dtype=np.int64), np.array([3.0]), np.eye(1))
+    assert node._in_view_frame(stranger) is stranger  # the first frame's features are gone: its own frame from now on
+    assert node._view_frame == stranger.frame_ids
+    assert _trigger(node._on_reset).success and node._view_frame is None
+
+
+def _feature_map(rng):
+    from linear_slam_ros.feature_only.conversion import to_feature_only
+    from linear_slam_ros.feature_only.joining import join_features_sequential
+    from linear_slam_ros.feature_only.precondition import precondition
+
+    world = make_world(2, 12, 20, rng)
+    groups = precondition(noisy_local_maps(world, rng, steps_per_map=4, sensor_range=9))
+    return join_features_sequential([to_feature_only(g) for g in groups])
+
+
+def test_the_path_carries_each_joined_submap_s_stamp_on_its_end_pose(make_node, maps):
+    node, _ = make_node()
+    for seq in (1, 2, 3):
+        node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 7)), "")
+    node._flush_poses()
+    state = node.joiner.state
+    views = node._map_views(node_module.global_result(state, "first_pose"), state, node._stamp_msg())
+    by_pose = {round(p.pose.position.x, 9): (p.header.stamp.sec, p.header.stamp.nanosec) for p in views.path.poses}
+    ends = [maps[k].end_id for k in range(3)]
+    first = node_module.global_result(state, "first_pose")
+    for k, end in enumerate(ends):
+        assert by_pose[round(float(first.pose(end)[0]), 9)] == (1001 + k, 7)

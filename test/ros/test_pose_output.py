@@ -11,7 +11,6 @@ publishes no TF, and still join and publish ``pose``.
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
@@ -67,6 +66,10 @@ def _latest(node, msg_type, topic: str, done, timeout_s: float = 20.0, qos=None)
     return None
 
 
+def _stamp_of(msg) -> tuple[int, int]:
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
 def _offline_end_pose(maps):
     """The end pose of the offline joined map in the first pose's frame, and its marginal covariance (dense inverse)."""
     joined = run_join(maps, "online-dc").result
@@ -113,29 +116,37 @@ def test_pose_carries_the_exact_covariance_and_save_map_writes_tum(node, start_j
 
 
 def test_publish_tf_broadcasts_the_newest_pose_or_says_why_not(node, start_joiner):
+    """Where tf2_msgs is installed: one map -> robot transform per stamp, in stamp order, the first pose
+    published at that stamp (TF listeners take a repeated stamp as a publisher error)."""
     maps = _maps()
     joiner = start_joiner(publish_rate=20.0, publish_tf=True, base_frame="robot")
     tf_class = tf_message_class()
     received: list = []
-    if tf_class is not None:  # a ROS 2 install: listen on /tf before the stream starts
+    poses: list = []
+    if tf_class is not None:  # a ROS 2 install: listen on /tf and pose before the stream starts
         node.create_subscription(tf_class, "/tf", received.append, 100)
+        node.create_subscription(PoseWithCovarianceStamped, joiner.topic("pose"), poses.append, 100)
     _run_stream(node, joiner, maps)
-    pose_expected, _ = _offline_end_pose(maps)
     if tf_class is not None:
+        last = (STAMPS[-1].sec, STAMPS[-1].nanosec)
         deadline = time.monotonic() + 20.0
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        done = threading.Event()
-        while time.monotonic() < deadline and not done.is_set():
+
+        def ours() -> list:
+            return [t for msg in received for t in msg.transforms if (t.header.frame_id, t.child_frame_id) == ("map", "robot")]
+
+        while time.monotonic() < deadline and not any(_stamp_of(t) == last for t in ours()):
             executor.spin_once(timeout_sec=0.1)
-            for msg in received:
-                for t in msg.transforms:
-                    if (t.header.frame_id, t.child_frame_id) == ("map", "robot") and np.allclose(
-                        [t.transform.translation.x, t.transform.translation.y], pose_expected[:2], atol=1e-9
-                    ):
-                        done.set()
+        executor.spin_once(timeout_sec=0.5)  # what the global map would have sent at that stamp too
         executor.remove_node(node)
-        assert done.is_set(), "no map -> robot transform at the joined map's end pose on /tf"
+        transforms = ours()
+        stamps = [_stamp_of(t) for t in transforms]
+        assert stamps and stamps[-1] == last, "no map -> robot transform at the last submap's stamp on /tf"
+        assert stamps == sorted(set(stamps)), "a stamp went to /tf twice, or out of order"
+        first_pose = next(p for p in poses if _stamp_of(p) == last)
+        t = transforms[-1].transform.translation
+        assert (t.x, t.y) == pytest.approx((first_pose.pose.pose.position.x, first_pose.pose.pose.position.y), abs=1e-12)
     code, output = joiner.stop()
     assert code == 0
     if tf_class is None:

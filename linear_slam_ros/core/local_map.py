@@ -44,6 +44,10 @@ POSE: int = 0
 FEATURE: int = 1
 """Kind code of a point feature variable."""
 
+ID_BOUND: int = 2**53
+"""Every variable id ``i`` has ``|i| < ID_BOUND``: the message layouts carry ids as doubles (exact
+below 2**53), and the variable key ``2 i + kind`` must fit an int64."""
+
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
 InfoMatrix = FloatArray | sp.csr_matrix
@@ -464,6 +468,10 @@ class LocalMap(VariableLayout):
         neg = (self.ids < 0) & (self.kinds == POSE)
         if neg.any():
             raise InvalidMapError(f"{who}: pose ids must be >= 0, got {self.ids[neg][0]}")
+        huge = (self.ids >= ID_BOUND) | (self.ids <= -ID_BOUND)
+        if huge.any() or not -ID_BOUND < self.frame_id < ID_BOUND:
+            bad = self.ids[huge][0] if huge.any() else self.frame_id
+            raise InvalidMapError(f"{who}: id {bad} is out of range (|id| < 2**53)")
         keys = self.keys
         if len(np.unique(keys)) != len(keys):
             uniq, counts = np.unique(keys, return_counts=True)

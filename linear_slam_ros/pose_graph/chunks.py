@@ -19,7 +19,7 @@ import numpy.typing as npt
 import scipy.sparse as sp
 
 from linear_slam_ros.core.errors import GraphError, InvalidMapError
-from linear_slam_ros.core.geometry import pose_size, wrap_angle
+from linear_slam_ros.core.geometry import pose_size, poses_to_frame, wrap_angle
 from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import POSE, InfoMatrix, LocalMap, check_block_diagonal_condition, default_end_pose
 from linear_slam_ros.core.solvers import DENSE_MAX
@@ -240,6 +240,9 @@ def star_local_maps(graph: PoseGraph, limits: InputLimits | None = None) -> list
     a local map in the frame of pose ``i`` (:func:`star_chunk_to_local_map`, repeated edges
     fused), and the maps are joined in increasing ``i``, as the benchmark pose-only datasets
     are. The graph objective is the sum of the maps' χ² (up to the constant of fused repeats).
+    A star whose frame pose no edge from an earlier pose reaches (odometry written backwards,
+    ``EDGE k+1 k``) could never join: its edges to earlier poses are first turned round
+    (:func:`forward_edges`).
 
     Args:
         graph: any graph; poses that no edge leaves are reached from other stars.
@@ -251,18 +254,51 @@ def star_local_maps(graph: PoseGraph, limits: InputLimits | None = None) -> list
     Raises:
         GraphError: a map is invalid.
     """
-    order = np.argsort(graph.from_ids, kind="stable")
-    frames, starts = np.unique(graph.from_ids[order], return_index=True)
+    from_ids, to_ids, measurements, information = forward_edges(graph)
+    order = np.argsort(from_ids, kind="stable")
+    frames, starts = np.unique(from_ids[order], return_index=True)
     bounds = np.append(starts, order.size)
     maps = []
     for k, frame in enumerate(frames.tolist()):
         edges = order[bounds[k] : bounds[k + 1]]
         star = PoseGraph.from_edges(
-            graph.from_ids[edges], graph.to_ids[edges], graph.measurements[edges], graph.information[edges],
+            from_ids[edges], to_ids[edges], measurements[edges], information[edges],
             dim=graph.dim, name=f"{graph.name}: edges from pose {frame}", limits=limits,
         )
         maps.append(star_chunk_to_local_map(star, limits))
     return maps
+
+
+def forward_edges(graph: PoseGraph) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """Return a graph's edges, those to an earlier pose from a pose no edge from an earlier pose reaches turned round.
+
+    Stars are joined by increasing frame pose, so star ``i`` joins when an earlier star holds pose
+    ``i``. When no edge ``j -> i`` with ``j < i`` exists, its edges to earlier poses are turned
+    round, and star ``j`` holds ``i`` then; other edges are left as they are (a backward loop
+    closure from a pose the odometry reaches stays in its star, as before). Edge ``i -> j``
+    becomes ``j -> i``: the measurement is inverted
+    (``z⁻¹ = (R (0 - t), angles(Rᵀ))``, pose ``i`` seen from pose ``j``) and its information moved to
+    first order at the measurement, ``I' = G⁻ᵀ I G⁻¹`` with ``G = ∂z⁻¹/∂z`` (exact Jacobians of
+    :func:`~linear_slam_ros.core.geometry.poses_to_frame`). Turning round twice gives the edge back.
+
+    Returns:
+        ``(from_ids, to_ids, measurements, information)``.
+    """
+    backward = graph.from_ids > graph.to_ids
+    reached = graph.to_ids[~backward]  # poses an edge from an earlier pose reaches
+    back = np.flatnonzero(backward & ~np.isin(graph.from_ids, reached))
+    from_ids, to_ids = graph.from_ids.copy(), graph.to_ids.copy()
+    measurements, information = graph.measurements.copy(), graph.information.copy()
+    if back.size:
+        d, z = graph.dim, graph.measurements[back]
+        inverse = poses_to_frame(d, z[:, :d], z[:, d:], np.zeros_like(z[:, :d]), np.zeros_like(z[:, d:]))
+        g_inv = np.linalg.inv(inverse.d_frame)
+        info = np.swapaxes(g_inv, 1, 2) @ graph.information[back] @ g_inv
+        from_ids[back], to_ids[back] = graph.to_ids[back], graph.from_ids[back]
+        measurements[back] = np.concatenate([inverse.translations, inverse.angles], 1)
+        information[back] = 0.5 * (info + np.swapaxes(info, 1, 2))
+        logger.info("%s: %d edge(s) to an earlier pose turned round", graph.name, back.size)
+    return from_ids, to_ids, measurements, information
 
 
 def chunk_end_pose(from_ids: IntArray, to_ids: IntArray, frame: int) -> int:

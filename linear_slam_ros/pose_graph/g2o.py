@@ -39,6 +39,7 @@ import numpy as np
 
 from linear_slam_ros.core.errors import GraphError
 from linear_slam_ros.core.geometry import drot3, rot2, rot3
+from linear_slam_ros.core.local_map import ID_BOUND
 from linear_slam_ros.pose_graph.graph import FloatArray, IntArray, PoseGraph
 from linear_slam_ros.pose_graph.quaternions import angles_to_quaternions, quaternions_to_angles
 
@@ -50,6 +51,9 @@ PARAMETERS = {2: 3, 3: 7}
 """Numbers of a pose in g2o's lines: ``x y theta`` (SE2), ``x y z qx qy qz qw`` (SE3)."""
 TANGENT = {2: 3, 3: 6}
 """Size of an edge's error vector and information."""
+
+QUATERNION_MIN_NORM = 1e-6
+"""A quaternion of a smaller norm (or a non-finite one) is refused: its normalisation means nothing."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +101,25 @@ def _upper_to_symmetric(values: list[float], p: int) -> list[list[float]]:
     return matrix
 
 
+def _pose_id(text: str) -> int:
+    """A pose id of a g2o line (``0 <= id < 2**53``, as every id of the project)."""
+    pose_id = int(text)
+    if not 0 <= pose_id < ID_BOUND:
+        raise ValueError(f"pose id {pose_id} is out of range (0 <= id < 2**53)")
+    return pose_id
+
+
+def _pose_values(dim: int, texts: list[str]) -> list[float]:
+    """A pose or measurement of a g2o line (``x y theta`` / ``x y z qx qy qz qw``); a quaternion must have a
+    finite norm that is not zero (it is normalised, as g2o does)."""
+    values = [float(v) for v in texts]
+    if dim == 3:
+        norm = float(np.linalg.norm(values[3:7]))
+        if not np.isfinite(norm) or norm < QUATERNION_MIN_NORM:
+            raise ValueError(f"quaternion (qx qy qz qw) = {tuple(values[3:7])} has norm {norm:g}: not a rotation")
+    return values
+
+
 def read_g2o_file(path: Path) -> G2oFile:
     """Read the pose-graph lines of a g2o file exactly as written.
 
@@ -139,20 +162,20 @@ def read_g2o_file(path: Path) -> G2oFile:
                 expected = 1 + PARAMETERS[dim]
                 if len(parts) - 1 != expected:
                     raise ValueError(f"{tag} needs {expected} values, got {len(parts) - 1}")
-                vid = int(parts[1])
+                vid = _pose_id(parts[1])
                 if vid in vertex_lines:
                     raise ValueError(f"vertex {vid} is already listed on line {vertex_lines[vid]}")
                 vertex_lines[vid] = n
                 vertex_ids.append(vid)
-                estimates.append([float(p) for p in parts[2:]])
+                estimates.append(_pose_values(dim, parts[2:]))
             else:
                 p = TANGENT[dim]
                 expected = 2 + PARAMETERS[dim] + p * (p + 1) // 2
                 if len(parts) - 1 != expected:
                     raise ValueError(f"{tag} needs {expected} values, got {len(parts) - 1}")
-                values = [float(v) for v in parts[3:]]
-                f.append(int(parts[1]))
-                t.append(int(parts[2]))
+                values = _pose_values(dim, parts[3:3 + PARAMETERS[dim]]) + [float(v) for v in parts[3 + PARAMETERS[dim]:]]
+                f.append(_pose_id(parts[1]))
+                t.append(_pose_id(parts[2]))
                 z.append(values[: PARAMETERS[dim]])
                 info.append(_upper_to_symmetric(values[PARAMETERS[dim] :], p))
         except ValueError as exc:

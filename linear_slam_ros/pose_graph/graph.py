@@ -27,6 +27,7 @@ from linear_slam_ros.core.limits import (
     information_diagonal_fault,
     limits_or_default,
 )
+from linear_slam_ros.core.local_map import ID_BOUND
 
 FloatArray = npt.NDArray[np.float64]
 IntArray = npt.NDArray[np.int64]
@@ -106,6 +107,9 @@ class PoseGraph:
             )
         if (self.from_ids < 0).any() or (self.to_ids < 0).any() or (self.pose_ids < 0).any():
             raise GraphError(f"{who}: pose ids must be >= 0")
+        for ids in (self.from_ids, self.to_ids, self.pose_ids):
+            if np.size(ids) and np.max(ids) >= ID_BOUND:
+                raise GraphError(f"{who}: pose id {int(np.max(ids))} is out of range (< 2**53)")
         if not poses_from_edges:
             if np.ndim(self.pose_ids) != 1 or np.any(np.diff(self.pose_ids) <= 0):
                 raise GraphError(f"{who}: pose_ids must be sorted and unique")

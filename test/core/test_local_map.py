@@ -50,6 +50,10 @@ def test_sparse_information_is_accepted():
         (dict(kinds=np.array([POSE], dtype=np.int8)), "ids and kinds must be 1-D of equal length"),
         (dict(kinds=np.array([POSE, 5], dtype=np.int8)), "variable kind must be 0 \\(pose\\) or 1 \\(feature\\), got 5"),
         (dict(ids=np.array([-1, 7])), "pose ids must be >= 0, got -1"),
+        # 2 id + kind overflowed an int64 at 2**62 (review of session 26): bounded as the messages carry ids
+        (dict(ids=np.array([2**62, 7])), "'lm': id 4611686018427387904 is out of range \\(\\|id\\| < 2\\*\\*53\\)"),
+        (dict(ids=np.array([0, -(2**53)])), "'lm': id -9007199254740992 is out of range"),
+        (dict(frame_id=2**53), "'lm': id 9007199254740992 is out of range"),
         (
             dict(ids=np.array([1, 1]), kinds=np.array([POSE, POSE], dtype=np.int8), x=np.zeros(6), info=np.eye(6)),
             "duplicate variable pose 1",

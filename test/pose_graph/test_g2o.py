@@ -154,6 +154,13 @@ def test_unknown_line_types_are_listed_in_one_warning(tmp_path, caplog):
         ("EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1 1 0 0\n", "m.g2o:1: EDGE_SE3:QUAT needs 30 values, got 12"),
         ("EDGE_SE2 0 1 1 0 zero 1 0 0 1 0 1\n", "m.g2o:1: could not convert string to float: 'zero'"),
         ("VERTEX_XY 1 0 0\n", "m.g2o has no edges"),
+        ("EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 0" + " 1" * 21 + "\n",  # a zero quaternion (review of session 26: a traceback)
+         r"m.g2o:1: quaternion \(qx qy qz qw\) = \(0.0, 0.0, 0.0, 0.0\) has norm 0: not a rotation"),
+        ("VERTEX_SE3:QUAT 0 0 0 0 nan 0 0 1\n", r"m.g2o:1: quaternion \(qx qy qz qw\) = \(nan, 0.0, 0.0, 1.0\) has norm nan"),
+        ("EDGE_SE2 0 4611686018427387904 1 0 0 1 0 0 1 0 1\n",
+         r"m.g2o:1: pose id 4611686018427387904 is out of range \(0 <= id < 2\*\*53\)"),
+        ("VERTEX_SE2 99999999999999999999 0 0 0\n", r"m.g2o:1: pose id 99999999999999999999 is out of range"),
+        ("EDGE_SE2 -1 0 1 0 0 1 0 0 1 0 1\n", r"m.g2o:1: pose id -1 is out of range"),
         (  # pitched by 90 deg about y (active): its information is fine, its Euler angles are not
             "EDGE_SE3:QUAT 0 1 1 0 0 0 0.7071067811865476 0 0.7071067811865476" + " 1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1\n",
             r"m.g2o: measurement of edge 0 \(0->1\) has pitch at \+-90 deg .*Euler angles are singular there \(gimbal lock\)",

@@ -17,6 +17,7 @@ from linear_slam_ros.pose_graph.graph import PoseGraph
         (dict(to_ids=np.array([4])), "needs at least one edge and equal numbers"),
         (dict(measurements=np.zeros((2, 6))), "2 edges need measurements \\(2, 3\\)"),
         (dict(from_ids=np.array([-1, 3])), "pose ids must be >= 0"),
+        (dict(to_ids=np.array([4, 2**62])), "pose id 4611686018427387904 is out of range \\(< 2\\*\\*53\\)"),
         (dict(to_ids=np.array([3, 7])), "edge 0 connects pose 3 to itself"),
         (dict(measurements=np.array([[np.inf, 0, 0], [0, 0, 0]])), "non-finite measurement or information"),
         (dict(information=np.stack([np.eye(3), np.triu(np.ones((3, 3)))])), "information of edge 1 \\(3->7\\) is not symmetric"),

@@ -144,7 +144,7 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
         for seq in range(1, 7):
             node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
             node._flush_poses()
-            assert _wait_for(lambda s=seq: sum(1 for _, _, st in sent if st == (1000 + s, 0)) >= 2)  # arrival + map
+            assert _wait_for(lambda s=seq, sent=sent: sum(1 for _, _, st in sent if st == (1000 + s, 0)) >= 2)  # arrival + map
         stamps = [(t.header.stamp.sec, t.header.stamp.nanosec) for t in transforms]
         assert stamps == [(1000 + seq, 0) for seq in range(1, 7)]  # each stamp once, in order
         assert {(t.header.frame_id, t.child_frame_id) for t in transforms} == {("map", odom_frame or "robot")}

@@ -14,10 +14,10 @@ from linear_slam_ros.ros.tf_output import TfOutput, map_to_odom
 from msg_adapters.views import transform_msg
 
 
-def _transform(parent: str, child: str, rotation: Rotation, translation, stamp=Time(sec=5)) -> TransformStamped:
+def _transform(parent: str, child: str, rotation: Rotation, translation, stamp: Time | None = None) -> TransformStamped:
     qx, qy, qz, qw = rotation.as_quat()
     return TransformStamped(
-        header=Header(frame_id=parent, stamp=stamp), child_frame_id=child,
+        header=Header(frame_id=parent, stamp=stamp or Time(sec=5)), child_frame_id=child,
         transform=Transform(translation=Vector3(x=translation[0], y=translation[1], z=translation[2]),
                             rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
     )

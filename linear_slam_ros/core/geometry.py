@@ -233,6 +233,26 @@ def pitch_lock_message(what: str, cos_beta: float) -> str:
     )
 
 
+def canonical_angles3(angles: FloatArray) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Return ``(m, 3)`` Euler angles with every pitch within ``[-pi/2, pi/2]``, and which rows changed.
+
+    A triple whose wrapped pitch is beyond ``pi/2`` in magnitude is replaced by the other triple of
+    the same rotation, ``(alpha + pi, pi - beta, gamma + pi)`` (wrapped), which :func:`angles3`
+    gives; the others are returned as they are. The map is affine with Jacobian
+    ``diag(1, -1, 1)``, so information over a changed triple is carried exactly by negating its
+    ``beta`` row and column. The linear joins wrap angle differences by ``2 pi`` one angle at a
+    time (Remark 3): the other triple of a rotation differs from the canonical one by ``pi`` in
+    each angle, and two maps giving one rotation by different triples were averaged into a wrong one.
+    """
+    angles = np.asarray(angles, dtype=np.float64)
+    flip = np.abs(wrap_angle(angles[:, 1])) > math.pi / 2
+    if not flip.any():
+        return angles, flip
+    out = angles.copy()
+    out[flip] = wrap_angle(np.stack([angles[flip, 0] + math.pi, math.pi - angles[flip, 1], angles[flip, 2] + math.pi], -1))
+    return out, flip
+
+
 _ANGLE_ENTRIES = np.array([0, 1, 2, 5, 8])
 """Flat indices of the entries of a rotation that :func:`angles3` reads: 00, 01, 02, 12, 22."""
 

@@ -25,7 +25,15 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from linear_slam_ros.core.errors import InvalidMapError, SolverError
-from linear_slam_ros.core.geometry import angle_size, pitch_lock_index, pitch_lock_message, point_size, pose_size, wrap_angle
+from linear_slam_ros.core.geometry import (
+    angle_size,
+    canonical_angles3,
+    pitch_lock_index,
+    pitch_lock_message,
+    point_size,
+    pose_size,
+    wrap_angle,
+)
 from linear_slam_ros.core.limits import (
     DEFINITE_ONLY,
     InputLimits,
@@ -387,6 +395,33 @@ class LocalMap(VariableLayout):
         object.__setattr__(self, "x", np.ascontiguousarray(self.x, dtype=np.float64))
         object.__setattr__(self, "layout", StateLayout(self.dim, self.kinds))
         self.validate()
+        if self.dim == 3:
+            self._canonical_orientations()
+
+    def _canonical_orientations(self) -> None:
+        """Give every 3D pose its canonical Euler triple (:func:`~linear_slam_ros.core.geometry.canonical_angles3`),
+        its information's ``beta`` row and column negated (exact: the change is affine); the caller's arrays
+        are not changed. On construction: a map's triples reach every join and the refinement canonical."""
+        index = self.angle_index
+        angles, flip = canonical_angles3(self.x[index])
+        if not flip.any():
+            return
+        x = self.x.copy()
+        x[index[flip]] = angles[flip]
+        sign = np.ones(x.size)
+        sign[index[flip, 1]] = -1.0
+        info: InfoMatrix
+        if sp.issparse(self.info):
+            csr = sp.csr_matrix(self.info, copy=True)
+            rows = np.repeat(np.arange(x.size), np.diff(csr.indptr))
+            csr.data = csr.data * sign[rows] * sign[csr.indices]
+            info = csr
+        else:
+            info = np.asarray(self.info, dtype=np.float64) * sign[:, None] * sign[None, :]
+        object.__setattr__(self, "x", x)
+        object.__setattr__(self, "info", info)
+        logger.debug("%s: %d pose(s) given by the other Euler triple of their rotation, made canonical",
+                     self.name, int(flip.sum()))
 
     def __reduce__(self) -> tuple[Callable[..., LocalMap], tuple[object, ...]]:
         """Pickle the fields only (another process: the refiner's): the layout and the cached lookups are

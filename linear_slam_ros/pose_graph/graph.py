@@ -19,7 +19,7 @@ import numpy.typing as npt
 import scipy.linalg
 
 from linear_slam_ros.core.errors import GraphError
-from linear_slam_ros.core.geometry import pitch_lock_index, pitch_lock_message, pose_size
+from linear_slam_ros.core.geometry import canonical_angles3, pitch_lock_index, pitch_lock_message, pose_size
 from linear_slam_ros.core.limits import (
     InputLimits,
     beyond_message,
@@ -236,6 +236,8 @@ class PoseGraph:
         info = np.asarray(information, dtype=np.float64)
         if dim is None:
             dim = 3 if z.ndim == 2 and z.shape[1] == pose_size(3) else 2
+        if dim == 3 and z.ndim == 2 and z.shape[1] == pose_size(3) and info.shape == (z.shape[0], 6, 6):
+            z, info = _canonical_measurements(z, info)
         poses = np.union1d(f, t) if pose_ids is None else np.unique(np.asarray(pose_ids, dtype=np.int64))
         graph = object.__new__(cls)  # the fields as they are, then one validation with ``limits``
         for field, value in (("dim", dim), ("from_ids", f), ("to_ids", t), ("measurements", z), ("information", info),
@@ -258,6 +260,21 @@ class PoseGraph:
     def is_star(self) -> bool:
         """Whether every edge leaves the same pose (then the graph is a pose-only local map)."""
         return bool(np.all(self.from_ids == self.from_ids[0]))
+
+
+def _canonical_measurements(z: FloatArray, info: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """3D measurements with canonical Euler triples, their information's ``beta`` row and column negated where
+    a triple changed (as :class:`~linear_slam_ros.core.local_map.LocalMap` does; the caller's arrays unchanged)."""
+    angles, flip = canonical_angles3(z[:, 3:])
+    if not flip.any():
+        return z, info
+    z = z.copy()
+    z[flip, 3:] = angles[flip]
+    sign = np.ones((int(flip.sum()), 6))
+    sign[:, 4] = -1.0
+    info = info.copy()
+    info[flip] *= sign[:, :, None] * sign[:, None, :]
+    return z, info
 
 
 def _has_cholesky(block: FloatArray) -> bool:

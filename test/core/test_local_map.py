@@ -143,3 +143,46 @@ def test_a_pose_close_to_the_pitch_lock_is_accepted():
     x = np.r_[0, 0, 0, 0.1, np.pi / 2 - 2e-6, 0.3, 1, 2, 3, 0.4, -np.pi / 2 + 2e-6, 2]
     m = _good(dim=3, kinds=np.array([POSE, POSE], dtype=np.int8), x=x, info=np.eye(12))
     assert m.pitch_lock_fault() is None
+
+
+@pytest.mark.parametrize("sparse", [False, True])
+def test_3d_euler_triples_are_made_canonical_on_construction(sparse, rng):
+    """``(alpha + pi, pi - beta, gamma + pi)`` is the same rotation; the map gets the canonical triple (pitch within
+    +-pi/2) and its information the ``beta`` row and column negated (exact: the change is affine). The caller's
+    arrays are left as they were."""
+    from linear_slam_ros.core.geometry import canonical_angles3, rot3
+
+    a = rng.normal(size=(12, 12))
+    info = a @ a.T + 12 * np.eye(12)
+    x = np.array([1.0, 2.0, 3.0, 0.3, 2.0, -0.4, 4.0, 5.0, 6.0, 0.1, 0.2, 0.3])  # pose 5: pitch 2.0 > pi/2
+    given_x, given_info = x.copy(), info.copy()
+    ids, kinds = np.array([5, 6]), np.array([POSE, POSE], dtype=np.int8)
+    m = LocalMap(3, 0, 6, ids, kinds, x, sp.csr_matrix(info) if sparse else info, name="lm")
+    np.testing.assert_allclose(m.x[3:6], [0.3 - np.pi, np.pi - 2.0, -0.4 + np.pi], atol=1e-15)
+    np.testing.assert_array_equal(m.x[[0, 1, 2, 6, 7, 8, 9, 10, 11]], x[[0, 1, 2, 6, 7, 8, 9, 10, 11]])
+    np.testing.assert_allclose(rot3(m.x[3:6]), rot3(x[3:6]), atol=1e-15)
+    flip = np.diag([1.0] * 4 + [-1.0] + [1.0] * 7)
+    np.testing.assert_allclose(m.info_dense(), flip @ info @ flip, rtol=1e-15)
+    assert sp.issparse(m.info) == sparse
+    np.testing.assert_array_equal(x, given_x)
+    np.testing.assert_array_equal(info, given_info)
+    angles, changed = canonical_angles3(np.array([[0.1, -1.7 - 2 * np.pi, 0.2], [0.1, 1.5, 0.2], [3.0, 1.5707, -3.0]]))
+    assert changed.tolist() == [True, False, False]
+    np.testing.assert_allclose(rot3(angles[0]), rot3(np.array([0.1, -1.7, 0.2])), atol=1e-14)
+    assert abs(angles[0, 1]) <= np.pi / 2
+
+
+def test_pose_graph_measurements_are_made_canonical():
+    from linear_slam_ros.core.geometry import rot3
+    from linear_slam_ros.pose_graph.graph import PoseGraph
+
+    z = np.array([[1.0, 0.0, 0.0, 0.5, 2.5, 0.1], [1.0, 0.0, 0.0, 0.5, 0.5, 0.1]])
+    info = np.stack([np.eye(6) + 0.1, np.eye(6) + 0.2])
+    graph = PoseGraph.from_edges([0, 1], [1, 2], z, info)
+    np.testing.assert_allclose(rot3(graph.measurements[0, 3:]), rot3(z[0, 3:]), atol=1e-15)
+    assert abs(graph.measurements[0, 4]) <= np.pi / 2
+    np.testing.assert_array_equal(graph.measurements[1], z[1])
+    flip = np.diag([1.0, 1, 1, 1, -1, 1])
+    np.testing.assert_allclose(graph.information[0], flip @ info[0] @ flip)
+    np.testing.assert_array_equal(graph.information[1], info[1])
+    assert z[0, 4] == 2.5 and info[0, 4, 0] == 0.1  # the caller's arrays

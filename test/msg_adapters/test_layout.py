@@ -204,7 +204,10 @@ def test_unknown_segments_are_ignored_even_when_not_finite(rng):
 def test_ids_a_double_cannot_carry_are_refused_when_encoding():
     from linear_slam_ros.core.local_map import LocalMap
 
-    m = LocalMap(2, 0, None, np.array([2**53 + 1]), np.array([1], np.int8), np.zeros(2), np.eye(2))
+    with pytest.raises(InvalidMapError, match=r"id 9007199254740993 is out of range \(\|id\| < 2\*\*53\)"):
+        LocalMap(2, 0, None, np.array([2**53 + 1]), np.array([1], np.int8), np.zeros(2), np.eye(2))
+    # a map the core built without validation (trusted): the encoder still refuses it
+    m = LocalMap.trusted(2, 0, None, np.array([2**53 + 1]), np.array([1], np.int8), np.zeros(2), np.eye(2))
     with pytest.raises(MessageError, match="segment 'var_ids': value 9007199254740993 cannot be carried exactly"):
         encode_map(m, 1)
     with pytest.raises(MessageError, match="segment 'header': value 9007199254740992 cannot be carried exactly"):

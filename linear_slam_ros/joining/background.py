@@ -93,12 +93,15 @@ class MergeWorker:
                 current = generation == self._generation
             t0 = time.perf_counter()
             try:
-                if current:
-                    join.value()
-                    self.n_done += 1
+                # counted and timed only when this thread computed it (not one the publisher or the gate made)
+                made = join.compute() if current else 0
+                if made:
+                    self.n_done += made
+                    self.seconds += time.perf_counter() - t0
             except LinearSlamError as exc:  # raised again to whoever asks for the value
                 logger.warning("deferred join failed: %s", exc)
+            except Exception:  # noqa: BLE001 - any other (a MemoryError of a large merge): the worker goes on
+                logger.exception("deferred join failed unexpectedly; whoever asks for its value computes it again")
             finally:
-                self.seconds += time.perf_counter() - t0
                 with self._lock:
                     self._outstanding -= 1

@@ -157,17 +157,32 @@ class Deferred:
             LinearSlamError: the join fails (the same error a synchronous join would raise).
         """
         result = self._result
-        if result is not None:
-            return result
+        if result is None:
+            self.compute()
+            result = self._result
+        assert result is not None
+        return result
+
+    def compute(self) -> int:
+        """Compute the joined map if nobody has; return how many joins this call made (it and the deferred
+        inputs it computed; 0: made by another thread; what the worker counts).
+
+        Raises:
+            LinearSlamError: the join fails (the same error a synchronous join would raise).
+        """
+        if self._result is not None:
+            return 0
         with self._lock:
-            if self._result is None:
-                assert self._inputs is not None
-                left, right = (resolve(e) for e in self._inputs)
-                result = join_at_seam(left, right)
-                _ = result.key_set  # built here, not by the thread that next looks a pose up in it
-                self._result = result
-                self._inputs = None  # the inputs' memory goes as soon as nothing else holds them
-            return self._result
+            if self._result is not None:  # another thread computed it while this one waited
+                return 0
+            assert self._inputs is not None
+            made = sum(e.compute() for e in self._inputs if isinstance(e, Deferred))
+            left, right = (resolve(e) for e in self._inputs)
+            result = join_at_seam(left, right)
+            _ = result.key_set  # built here, not by the thread that next looks a pose up in it
+            self._result = result
+            self._inputs = None  # the inputs' memory goes as soon as nothing else holds them
+            return made + 1
 
 
 Entry = LocalMap | Deferred

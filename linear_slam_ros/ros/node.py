@@ -761,6 +761,7 @@ class JoinerNode(Node):
             out[f"n_fresh_{what}"] = float(len(samples))
         if self.worker is not None:
             out["background_merges"] = float(self.worker.n_done)
+            out["background_merge_worker_alive"] = float(self.worker.alive)
             out["background_merge_seconds_total"] = self.worker.seconds
         out["n_views_skipped"] = float(self._views_skipped)
         out["peak_rss_mb"] = peak_rss_mb()

@@ -262,3 +262,38 @@ def test_the_stack_chain_lets_a_landed_merges_inputs_go(rng):
     assert [r() for r in inputs] == [None, None]
     merged = chain_end_pose(leaf_maps(state.stack), maps[0].frame_id)
     np.testing.assert_allclose(chain.end_pose(state.stack, maps[0].frame_id)[1], merged[1], rtol=0, atol=1e-9)
+
+
+def test_the_worker_survives_an_unexpected_error_and_counts_only_its_own_merges(maps, monkeypatch, caplog):
+    """A MemoryError of one large merge ended the worker thread for good, and its queue then held every
+    deferred merge of the stream (review of session 26); merges another thread made were counted as its own."""
+    import time
+
+    real_join = divide_conquer.join_at_seam
+    failed: list[bool] = []
+    in_worker = [0]
+
+    def join(a, b, name="global"):
+        if not failed:
+            failed.append(True)
+            raise MemoryError("a large merge")
+        if threading.current_thread().name == "linear_slam_merge":
+            in_worker[0] += 1
+            time.sleep(0.02)  # slow: the thread asking for the result makes most of the queued merges itself
+        return real_join(a, b, name)
+
+    monkeypatch.setattr(divide_conquer, "join_at_seam", join)
+    worker = MergeWorker()
+    try:
+        state = _run(maps[:16], 0, worker)
+        assert worker.wait_idle(30.0) and worker.alive
+        assert "deferred join failed unexpectedly" in caplog.text and "MemoryError: a large merge" in caplog.text
+        _assert_same_map(online_dc_result(state), online_dc_result(_run(maps[:16], None)))  # computed again on demand
+        lazy = _run(maps[:32], 0)
+        pending = pending_joins(lazy.stack)
+        worker.submit(pending)
+        online_dc_result(lazy)  # this thread makes what the slow worker has not
+        assert worker.wait_idle(30.0)
+        assert worker.n_done == in_worker[0] and in_worker[0] < len(pending) + 15
+    finally:
+        worker.stop()

@@ -31,9 +31,14 @@ Per stream, one submap at a time, in one process each:
 Scored with the project's own χ² (:func:`linear_slam_ros.evaluation.objective.chi2`); the optimum
 is the converged refined map's χ². Targets (issue 13): the refined map within 0.1% of the optimum
 ≤ 2 s after the last submap; the CPU of joining plus refinement ≤ 1/3 of iSAM2's (``cpu_join_refine_s``:
-the joins, the rest of this process and the refiner process; iSAM2's figure is its updates, with no
-full estimate computed after them). The linear outputs, which a node publishes whether it refines or not, are
-reported apart and in ``cpu_total_s``, which is checked against the same third as well.
+the joins, the rest of this process and the refiner process). iSAM2's figure is its updates plus the
+estimate of each new pose's frame pose that its start needs (``calculateEstimate(key)``: it makes
+iSAM2 back-substitute its delta at every update, which ``update`` alone does only when it
+relinearises; reported apart as ``cpu_estimate_queries_s``, 20–50% of the total on the larger
+streams), with no full estimate computed after them. The ratio ``cpu_third_of_isam2`` is on that
+total; ``cpu_third_of_isam2_updates`` on the updates alone (a user who starts new poses without a
+query). The linear outputs, which a node publishes whether it refines or not, are reported apart and
+in ``cpu_total_s``, which is checked against the same third as well.
 """
 
 from __future__ import annotations
@@ -262,6 +267,7 @@ def run_isam2(maps: Sequence[LocalMap]) -> dict[str, Any]:
     current = isam.calculateEstimatePose2 if dim == 2 else isam.calculateEstimatePose3
     known: set[int] = set()
     steps = []
+    query_cpu = 0.0
     c0 = time.process_time()
     for i, edges in enumerate(factors):
         t0 = time.perf_counter()
@@ -274,7 +280,12 @@ def run_isam2(maps: Sequence[LocalMap]) -> dict[str, Any]:
         for f, t, meas, noise in edges:
             graph.add(between(f, t, meas, noise))
             if t not in known and t not in new:  # starts at its frame pose's current estimate composed with the edge
-                start = new[f] if f in new else current(f)
+                if f in new:
+                    start = new[f]
+                else:
+                    q0 = time.process_time()
+                    start = current(f)
+                    query_cpu += time.process_time() - q0
                 new[t] = start.compose(meas)
         for key, value in new.items():
             values.insert(key, value)
@@ -288,7 +299,7 @@ def run_isam2(maps: Sequence[LocalMap]) -> dict[str, Any]:
     import scipy.sparse as sp
 
     result = LocalMap.trusted(dim, origin, None, ids, np.full(ids.size, POSE, np.int8), x, sp.identity(x.size, format="csr"))
-    return {"cpu_total_s": cpu, **_latency("update", steps), "chi2": chi2(result, maps)}
+    return {"cpu_total_s": cpu, "cpu_estimate_queries_s": query_cpu, **_latency("update", steps), "chi2": chi2(result, maps)}
 
 
 def _latency(prefix: str, seconds: Sequence[float]) -> dict[str, float]:
@@ -322,14 +333,19 @@ def race_stream(name: str, source: str, config: RefinerConfig | None = None, isa
         "refined_lag": ours["refined_lag_s"] <= TARGETS["refined_lag_s"],
         "cpu_third_of_isam2": _within_third(ours["cpu_join_refine_s"], isam),
         "cpu_third_of_isam2_with_outputs": _within_third(ours["cpu_total_s"], isam),
+        "cpu_third_of_isam2_updates": _within_third(ours["cpu_join_refine_s"], isam, updates_only=True),
     }
     print(json.dumps(entry, indent=1, default=str), file=sys.stderr, flush=True)
     return entry
 
 
-def _within_third(ours_cpu_s: float, isam: dict[str, Any] | None) -> bool | None:
-    """Whether ``ours_cpu_s`` is within :data:`TARGETS`' fraction of iSAM2's CPU (``None``: no iSAM2 run)."""
-    return None if isam is None else ours_cpu_s <= TARGETS["cpu_ratio"] * isam["cpu_total_s"]
+def _within_third(ours_cpu_s: float, isam: dict[str, Any] | None, updates_only: bool = False) -> bool | None:
+    """Whether ``ours_cpu_s`` is within :data:`TARGETS`' fraction of iSAM2's CPU, or of its updates alone
+    (without the estimate queries that start new poses); ``None``: no iSAM2 run."""
+    if isam is None:
+        return None
+    cpu = isam["cpu_total_s"] - (isam["cpu_estimate_queries_s"] if updates_only else 0.0)
+    return ours_cpu_s <= TARGETS["cpu_ratio"] * cpu
 
 
 def _read(source: str) -> Sequence[LocalMap]:
@@ -345,15 +361,17 @@ def to_markdown(entries: list[dict[str, Any]]) -> str:
     head = (
         "| stream | submaps | ours join p50 / p99 / max ms | ours CPU s: join + rest + refiner (+ outputs) "
         "| χ² linear / refined (optimum) | refined ≤0.1% after s | iSAM2 update p50 / p99 / max ms | iSAM2 CPU s "
-        "| iSAM2 χ² | CPU ours / iSAM2 (with outputs) |\n"
-        "|---|---|---|---|---|---|---|---|---|---|"
+        "| iSAM2 χ² | CPU ours / iSAM2 (with outputs) | CPU ours / iSAM2's updates alone |\n"
+        "|---|---|---|---|---|---|---|---|---|---|---|"
     )
     rows, missed = [], []
     for e in entries:
         o, i = e["ours"], e["isam2"]
-        isam_cols = "– | – | – | –" if i is None else (
+        isam_cols = "– | – | – | – | –" if i is None else (
             f"{i['update_p50_ms']:.2f} / {i['update_p99_ms']:.1f} / {i['update_max_ms']:.0f} | {i['cpu_total_s']:.2f} "
-            f"| {i['chi2']:.2f} | {o['cpu_join_refine_s'] / i['cpu_total_s']:.2f} ({o['cpu_total_s'] / i['cpu_total_s']:.2f})"
+            f"(queries {i['cpu_estimate_queries_s']:.2f}) "
+            f"| {i['chi2']:.2f} | {o['cpu_join_refine_s'] / i['cpu_total_s']:.2f} ({o['cpu_total_s'] / i['cpu_total_s']:.2f}) "
+            f"| {o['cpu_join_refine_s'] / (i['cpu_total_s'] - i['cpu_estimate_queries_s']):.2f}"
         )
         rows.append(
             f"| {e['stream']} | {o['n_submaps']} | {o['join_p50_ms']:.2f} / {o['join_p99_ms']:.1f} / {o['join_max_ms']:.0f} "
@@ -387,12 +405,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                     "before the round (0: the warm start as it is)")
     ap.add_argument("--no-isam2", action="store_true", help="ours only (the levers' comparisons)")
     args = ap.parse_args(argv)
+    names = args.only or STREAMS
+    sources = {n: n if n.startswith("synthetic:") else str(args.datasets_dir / f"{n}.tar.xz") for n in names}
+    missing = [n for n, source in sources.items() if not n.startswith("synthetic:") and not Path(source).exists()]
+    if missing:  # a table without them would read as a whole run
+        print(f"race: no archive {', '.join(sources[n] for n in missing)} (names are case-sensitive, as the "
+              f"archives': {', '.join(STREAMS)}); nothing run", file=sys.stderr)
+        return 2
     entries = []
-    for name in args.only or STREAMS:
-        source = name if name.startswith("synthetic:") else str(args.datasets_dir / f"{name}.tar.xz")
-        if not name.startswith("synthetic:") and not Path(source).exists():
-            print(f"{source} missing: {name} skipped", file=sys.stderr)
-            continue
+    for name in names:
+        source = sources[name]
         config = RefinerConfig(
             growth=args.growth, idle_s=args.idle_s, streaming_rtol=args.streaming_rtol, settle_s=args.settle_s,
             reuse_analysis=not args.no_reuse_analysis, place_steps=args.place_steps,

@@ -3,8 +3,8 @@
 The program is not part of the project and is never shipped: the benchmark looks for it next to
 the datasets folder (``DATASETS/../reference/LinearSLAM``, e.g. ``../shared/reference/``), and
 compares only when it is there. It prints ``Used Time: <s> sec`` last, the CPU time of its
-joining (file reading excluded); with ``OPENBLAS_NUM_THREADS=1`` that is the wall time of its
-joining, the figure to set beside the project's join time on one BLAS thread.
+joining (file reading excluded): the benchmark sets it beside the CPU time of the project's
+joining on one BLAS thread (on an idle host both equal their wall times).
 """
 
 from __future__ import annotations

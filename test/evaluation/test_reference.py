@@ -48,3 +48,36 @@ def test_table_says_when_the_program_is_absent_and_gives_ratios_when_present():
     present = [{"dataset": "d", "reference_program": {"path": "/p", "runs": {"dc": run}}}]
     text = "\n".join(_program_table(present))
     assert "| d | dc | 1.000 | 2.000 | 3 | 0.500 | 1.00 | yes |" in text
+
+
+def test_the_project_is_timed_by_cpu_beside_the_program_s_cpu_time(tmp_path, monkeypatch):
+    """The program's ``Used Time`` is CPU time; the project's wall time beside it swung the ratio from about 1 to 9
+    on a loaded host (a review of session 26)."""
+    import time
+
+    import numpy as np
+
+    from linear_slam_ros.evaluation import benchmark
+    from linear_slam_ros.evaluation.reference import ProgramRun
+    from linear_slam_ros.evaluation.runner import JoinRun, run_join
+    from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
+    from linear_slam_ros.joiner.strategy import JoinMethod
+
+    maps = noisy_local_maps(make_world(2, 24, 20, np.random.default_rng(3)), np.random.default_rng(4), steps_per_map=3)
+    real = run_join(maps, "dc")
+    assert 0.0 < real.cpu_seconds < 10.0 * real.seconds + 0.05  # measured over the same span
+    slow = run_join(maps, "dc", progress=lambda _: time.sleep(0.1))  # waiting (a level each): wall grows, CPU does not
+    assert slow.seconds > slow.cpu_seconds + 0.2
+
+    monkeypatch.setattr(benchmark, "run_join", lambda m, method: JoinRun(JoinMethod.DC, None, 5.0, (), 1, "x", 1.0))
+    monkeypatch.setattr(benchmark, "run_program", lambda *args: ProgramRun("dc", 2.0))
+    monkeypatch.setattr(benchmark, "list_local_map_files", lambda folder: [folder])
+
+    class _Dataset:
+        maps = ()
+        kind = JoinMethod.DC  # anything with a .value
+        name = "d"
+
+    out = benchmark.compare_with_program(_Dataset(), tmp_path, tmp_path / "LinearSLAM", ["dc"], 10)
+    assert out["dc"]["project_seconds"] == 1.0 and out["dc"]["ratio"] == 0.5
+    assert out["dc"]["project_wall_all"] == [5.0] * out["dc"]["repeats"]

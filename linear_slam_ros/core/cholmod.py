@@ -197,7 +197,8 @@ def _sorted_csc(matrix: sp.spmatrix | sp.sparray) -> sp.csc_matrix:
 
     A CSR matrix's arrays are those of its transpose in CSC, which is the same matrix: they are
     read as such, not converted (a copy of every entry: 68 MB for a 20,000-pose map). Unsorted
-    indices are sorted in a copy: the caller's arrays may be shared with other threads.
+    indices are sorted, and repeated entries summed (scipy's convention, which CHOLMOD does not
+    follow: it solved another matrix), in a copy: the caller's arrays may be shared with other threads.
 
     Raises:
         SolverError: the matrix is not square.
@@ -209,7 +210,11 @@ def _sorted_csc(matrix: sp.spmatrix | sp.sparray) -> sp.csc_matrix:
         shape = csc.shape
     if shape[0] != shape[1]:
         raise SolverError(f"a symmetric positive definite matrix is square, got shape {shape}")
-    return csc if csc.has_sorted_indices else csc.sorted_indices()
+    if csc.has_canonical_format:
+        return csc
+    csc = csc.copy()
+    csc.sum_duplicates()
+    return csc
 
 
 def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray]:

@@ -86,14 +86,19 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     """Solve ``matrix @ x = rhs`` for a sparse SPD matrix.
 
     Args:
-        matrix: ``(n, n)`` symmetric positive definite, any scipy sparse format.
+        matrix: ``(n, n)`` symmetric positive definite, any scipy sparse format (repeated entries
+            are summed, as scipy reads them).
         rhs: ``(n,)`` or ``(n, k)``.
         backend: ``"libcholmod"`` (CHOLMOD through ctypes), ``"sksparse"`` (CHOLMOD through
             scikit-sparse), ``"cholmod"`` (cholespy), ``"scipy"``
             (SuperLU with a symmetric ordering) or ``"auto"`` (the best installed).
 
     Raises:
-        SolverError: the matrix is singular or not positive definite.
+        SolverError: the matrix is not positive definite (a pivot not above zero). The condition
+            is not estimated: an exactly singular matrix whose pivots round to small positive
+            numbers is solved by the CHOLMOD backends into a finite, meaningless answer (scipy's
+            refuses it). The joins never pass one: map validation bounds the condition number
+            (:mod:`~linear_slam_ros.core.limits`), and a sum of positive definite informations is one.
     """
     rhs = np.ascontiguousarray(rhs, dtype=np.float64)
     if backend == "auto":
@@ -103,8 +108,12 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     if backend == "sksparse":
         if _cholmod_cholesky is None:
             raise SolverError("backend 'sksparse' requested but scikit-sparse is not installed")
+        csc = matrix if isinstance(matrix, sp.csc_matrix) else sp.csc_matrix(matrix)
+        if not csc.has_canonical_format:  # repeated entries summed, as scipy reads them (CHOLMOD does not)
+            csc = csc.copy()
+            csc.sum_duplicates()
         try:
-            factor = _cholmod_cholesky(matrix if isinstance(matrix, sp.csc_matrix) else sp.csc_matrix(matrix))
+            factor = _cholmod_cholesky(csc)
             # CHOLMOD may pick an LDL^T factorisation, which does not fail on indefinite input
             if np.any(factor.D() <= 0):
                 raise _NotPD("non-positive pivot")
@@ -114,7 +123,9 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     if backend == "cholmod" and _cholespy is not None:
         # scipy-stubs: the csr_matrix overloads omit the bare sp.spmatrix (a mixin there; what sp.bmat returns)
         csr = sp.csr_matrix(matrix)  # type: ignore[call-overload]
-        csr.sum_duplicates()
+        if not csr.has_canonical_format:  # summed in a copy: the caller's arrays may be shared
+            csr = csr.copy()
+            csr.sum_duplicates()
         try:
             solver = _cholespy.CholeskySolverD(
                 csr.shape[0],
@@ -151,8 +162,12 @@ def symmetric_splu(matrix: FloatArray | sp.spmatrix) -> spla.SuperLU:
         SolverError: ``information matrix is singular`` or ``information matrix is not positive
             definite``.
     """
+    csc = sp.csc_matrix(matrix)
+    if not csc.has_canonical_format:  # splu sums repeated entries in place: in a copy, the caller's arrays kept
+        csc = csc.copy()
+        csc.sum_duplicates()
     try:
-        lu = spla.splu(sp.csc_matrix(matrix), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        lu = spla.splu(csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
         raise SolverError("information matrix is singular") from None
     if not np.all(lu.U.diagonal() > 0):

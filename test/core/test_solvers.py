@@ -307,3 +307,26 @@ def test_cholmod_loads_with_one_openmp_thread_and_leaves_the_environment_as_it_w
     assert _openmp_probe("4") == ["4", "4"]
     # without one, the factorisation runs on the calling thread alone, and no limit is left for child processes
     assert _openmp_probe(None) == ["unset", "1"]
+
+
+@pytest.mark.parametrize("backend", ["libcholmod", "sksparse", "cholmod", "scipy"])
+@pytest.mark.parametrize("fmt", ["csc", "csr"])
+def test_repeated_entries_are_summed_as_scipy_reads_them(backend, fmt, rng):
+    """A matrix with repeated entries is their sum to scipy; CHOLMOD read another matrix (solutions 3 off,
+    a review of session 26)."""
+    n = 60
+    a = sp.random(n, n, density=0.1, random_state=1)
+    spd = (a @ a.T + 3.0 * sp.identity(n)).tocsc()
+    cols = np.repeat(np.arange(n), np.diff(spd.indptr))
+    rows, cols2 = np.concatenate([spd.indices, spd.indices]), np.concatenate([cols, cols])
+    order = np.lexsort((rows, cols2))
+    halves = np.concatenate([0.5 * spd.data, 0.5 * spd.data])[order]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(cols2, minlength=n))])
+    repeated = sp.csc_matrix((halves, rows[order], indptr), shape=(n, n))
+    assert not repeated.has_canonical_format and abs(repeated - spd).max() < 1e-15
+    given = repeated if fmt == "csc" else repeated.T.tocsr(copy=True)  # CSR of the transpose keeps the repeats
+    data_before = given.data.copy()
+    x_true = rng.normal(size=n)
+    x = solve_sparse_spd(given, spd @ x_true, backend)
+    np.testing.assert_allclose(x, x_true, atol=1e-10)
+    np.testing.assert_array_equal(given.data, data_before)  # the caller's matrix as it was

@@ -49,7 +49,7 @@ class MergeWorker:
         """Queue joins not queued yet (inputs before results, as :func:`pending_joins` lists them)."""
         with self._lock:
             for d in joins:
-                if id(d) not in self._submitted and not d.done:
+                if id(d) not in self._submitted and not d.done and not d.failed:
                     self._submitted.add(id(d))
                     self._outstanding += 1
                     self._queue.put((self._generation, d))

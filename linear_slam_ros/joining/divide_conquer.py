@@ -19,7 +19,7 @@ from typing import TypeVar
 import numpy as np
 import numpy.typing as npt
 
-from linear_slam_ros.core.errors import FrameError, InvalidMapError
+from linear_slam_ros.core.errors import FrameError, InvalidMapError, LinearSlamError
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.joining.batched import divide_and_conquer_levels
 from linear_slam_ros.joining.chain import compose, relative_end
@@ -138,12 +138,18 @@ class Deferred:
         self.size = entry_size(left) + entry_size(right)
         self._inputs: tuple[Entry, Entry] | None = (left, right)
         self._result: LocalMap | None = None
+        self._error: LinearSlamError | None = None  # a failed join fails again the same way: kept, not recomputed
         self._lock = threading.Lock()
 
     @property
     def done(self) -> bool:
         """Whether the joined map has been computed."""
         return self._result is not None
+
+    @property
+    def failed(self) -> bool:
+        """Whether the join failed (:meth:`value` raises that error again without recomputing it)."""
+        return self._error is not None
 
     @property
     def inputs(self) -> tuple[Entry, Entry] | None:
@@ -175,10 +181,16 @@ class Deferred:
         with self._lock:
             if self._result is not None:  # another thread computed it while this one waited
                 return 0
+            if self._error is not None:
+                raise self._error
             assert self._inputs is not None
-            made = sum(e.compute() for e in self._inputs if isinstance(e, Deferred))
-            left, right = (resolve(e) for e in self._inputs)
-            result = join_at_seam(left, right)
+            try:
+                made = sum(e.compute() for e in self._inputs if isinstance(e, Deferred))
+                left, right = (resolve(e) for e in self._inputs)
+                result = join_at_seam(left, right)
+            except LinearSlamError as exc:  # deterministic: the same inputs fail the same way (other errors: retried)
+                self._error = exc
+                raise
             _ = result.key_set  # built here, not by the thread that next looks a pose up in it
             self._result = result
             self._inputs = None  # the inputs' memory goes as soon as nothing else holds them
@@ -205,7 +217,7 @@ def pending_joins(stack: Sequence[Entry]) -> list[Deferred]:
     seen: set[int] = set()
 
     def visit(entry: Entry) -> None:
-        if not isinstance(entry, Deferred) or entry.done or id(entry) in seen:
+        if not isinstance(entry, Deferred) or entry.done or entry.failed or id(entry) in seen:
             return
         inputs = entry.inputs
         if inputs is not None:

@@ -173,6 +173,30 @@ def test_a_failing_deferred_merge_raises_to_whoever_asks(maps):
         broken.value()
 
 
+def test_a_failed_deferred_merge_is_not_computed_again(maps, monkeypatch):
+    """A failed merge was submitted again at every arrival and made again at every publication: 235 attempts
+    over 88 arrivals (a review of session 26). The same inputs fail the same way: the error is kept."""
+    bad = maps[1].replace(frame_id=999_999, ids=maps[1].ids + 1_000_000)  # shares no pose with maps[0]
+    broken = Deferred(maps[0], bad, 2)
+    above = Deferred(broken, maps[2], 3)
+    calls = []
+    real_join = divide_conquer.join_at_seam
+    monkeypatch.setattr(divide_conquer, "join_at_seam", lambda a, b, name="global": (calls.append(1), real_join(a, b))[1])
+    worker = MergeWorker()
+    try:
+        worker.submit(pending_joins([above]))
+        assert worker.wait_idle(30.0) and broken.failed and above.failed and len(calls) == 1
+        assert pending_joins([above]) == []
+        worker.submit([broken, above])  # not queued again
+        assert worker.wait_idle(30.0) and len(calls) == 1
+    finally:
+        worker.stop()
+    for d in (broken, above):
+        with pytest.raises(FrameError, match="does not hold pose"):
+            d.value()
+    assert len(calls) == 1
+
+
 def test_chained_pose_is_the_end_pose_of_the_merged_map_for_exact_maps(rng):
     """Noise-free maps agree, so chaining the parts gives the merged map's end pose exactly."""
     world = make_world(2, 40, 0, rng)

@@ -6,7 +6,8 @@ from __future__ import annotations
 import os
 import tarfile
 import tempfile
-from collections.abc import Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -28,6 +29,16 @@ from linear_slam_ros.joining.pairwise import join_pair, to_end_frame
 from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = 5.0, poll: float = 0.005) -> bool:
+    """Poll ``condition`` until it holds or ``timeout`` s pass; return whether it holds (asked once more at the end)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if condition():
+            return True
+        time.sleep(poll)
+    return condition()
 
 
 def install_prefix(package: str = "linear_slam_ros") -> Path:

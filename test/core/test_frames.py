@@ -142,3 +142,18 @@ def test_a_map_not_positive_definite_in_the_frame_of_its_end_pose_cannot_be_join
     # there: its position across the lever arm follows its heading; positive definite)
     assert end_frame_fault(far(1000.0, [1e4, 1e4, 100.0])) is None
     assert end_frame_fault(_map(2, np.random.default_rng(3))) is None
+
+
+def test_a_moved_map_forgets_its_new_frame_pose_and_wraps_its_2d_headings():
+    """Mutation audit (session 26): nothing checked that the new frame pose leaves the key lookup, nor that the
+    moved 2D headings are wrapped into (-pi, pi] as documented."""
+    from linear_slam_ros.core.local_map import pose_key
+
+    m = LocalMap(2, 0, 5, np.array([3, 5]), np.array([POSE, POSE], np.int8), np.array([1.0, 0, 0.2, 2.0, 1.0, 7.0]),
+                 np.eye(6) * 10, "m")
+    moved = change_frame(m, 5)
+    assert moved.frame_id == 5 and not moved.has_pose(5) and moved.index_of(pose_key(5)) is None
+    assert moved.has_pose(0) and moved.ids.tolist() == [3, 0]
+    headings = moved.x[moved.angles]
+    assert np.all((headings > -np.pi) & (headings <= np.pi))
+    np.testing.assert_allclose(headings, [np.mod(0.2 - 7.0 + np.pi, 2 * np.pi) - np.pi, np.mod(-7.0 + np.pi, 2 * np.pi) - np.pi])

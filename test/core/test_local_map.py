@@ -186,3 +186,11 @@ def test_pose_graph_measurements_are_made_canonical():
     np.testing.assert_allclose(graph.information[0], flip @ info[0] @ flip)
     np.testing.assert_array_equal(graph.information[1], info[1])
     assert z[0, 4] == 2.5 and info[0, 4, 0] == 0.1  # the caller's arrays
+
+
+def test_an_asymmetric_sparse_information_is_refused():
+    info = sp.csr_matrix(np.eye(5) * 3.0)
+    info = info.tolil()
+    info[0, 3] = 0.5  # one entry without its mirror
+    with pytest.raises(InvalidMapError, match="not symmetric"):
+        LocalMap(2, 0, 7, np.array([7, 1]), np.array([POSE, 1], dtype=np.int8), np.zeros(5), info.tocsr(), name="lm")

@@ -92,6 +92,14 @@ def test_maps_join_in_the_frame_of_the_longest_baseline_common_features(dim):
     b = change_feature_frame(b, b_frame)  # b's own frame is common: the join must not keep it
     longest = choose_frame_features(dim, a.positions(), common)
     assert longest != b_frame
+    # the longest baseline of the common features, computed here (it was computed with choose_frame_features
+    # itself, so a mutant picking the shortest pair passed: mutation audit, session 26)
+    from itertools import combinations
+
+    positions = a.positions()
+    pairs = list(combinations(common, 2))
+    lengths = [float(np.linalg.norm(positions[p] - positions[q])) for p, q in pairs]
+    assert float(np.linalg.norm(positions[longest[0]] - positions[longest[1]])) == pytest.approx(max(lengths))
     joined = join_feature_maps(a, b)
     assert joined.frame_ids == longest
 

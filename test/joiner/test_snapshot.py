@@ -449,3 +449,20 @@ def test_a_version_5_file_is_read_with_no_feature_re_initialised(maps, caplog):
     back = decode_state(_rewritten(j, lambda fields: fields.pop("relabels"), 5))  # what version 5 wrote
     assert back.state.relabels == Relabels() and back.state.variance == j.state.variance
     assert "format version 5" not in caplog.text  # nothing is lost: no warning
+
+
+def test_a_state_file_that_cannot_be_written_or_names_another_format_is_refused(maps, tmp_path):
+    """Branches no test reached (mutation audit, session 26): the node catches only LinearSlamError around a
+    periodic snapshot, so a raw OSError would have escaped."""
+    j = Joiner("online-dc")
+    for seq, m in enumerate(maps[:3], start=1):
+        j.offer(m, seq)
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(SnapshotError, match=r"^cannot write state file .*file/state\.npz: "):
+        write_snapshot(tmp_path / "file" / "state.npz", j.save())
+    arrays = encode_state(j.save())
+    header = json.loads(bytes(arrays["header"]).decode())
+    header["format"] = "another_format"
+    arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    with pytest.raises(SnapshotError, match="not a linear_slam_ros state file"):
+        decode_state(arrays)

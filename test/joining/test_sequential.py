@@ -187,3 +187,40 @@ def test_a_submap_that_cannot_be_fused_is_refused_with_the_reason(rng, monkeypat
     monkeypatch.setattr(sequential, "_gesv", lambda a, b: (*real_gesv(a, b)[:3], 2))  # LAPACK: U(2, 2) is zero
     with pytest.raises(SolverError, match=rf"submap '{submap.name}': the joint system of its common variables is singular"):
         sequential_step(state, submap)
+
+
+def test_a_common_pose_s_heading_is_fused_across_the_wrap():
+    """Remark 3 in sequential joining: the global map holds pose 2 at +3.13 rad, the submap at -3.13 (0.023 rad apart
+    across +-pi); unwrapped, the fused heading was their mean, about 0 (mutation audit, session 26)."""
+    from linear_slam_ros.core.frames import change_frame
+    from linear_slam_ros.core.geometry import wrap_angle
+    from linear_slam_ros.core.local_map import POSE, LocalMap
+    from linear_slam_ros.joining.sequential import SequentialState, sequential_step
+
+    kinds = np.array([POSE, POSE], np.int8)
+    a = LocalMap(2, 0, 1, np.array([1, 2]), kinds, np.array([1.0, 0, 0, 1.0, 1.0, 3.13]), np.eye(6) * 100, "a")
+    b = LocalMap(2, 1, 3, np.array([2, 3]), kinds, np.array([0.0, 1.0, -3.13, -1.0, 1.0, -3.13]), np.eye(6) * 100, "b")
+    joined = sequential_step(sequential_step(SequentialState(), a), b).global_map.to_local_map()
+    assert joined.frame_id == 3
+    heading = change_frame(joined, 0).pose(2)[2]
+    assert abs(wrap_angle(heading - np.pi)) < 0.012  # near pi, between +3.13 and -3.13 + 2 pi
+
+
+def test_the_global_map_s_frame_and_end_pose_after_each_kind_of_submap():
+    """Mutation audit (session 26): the frame a sequential map ends in was pinned for streams only."""
+    from linear_slam_ros.core.local_map import POSE, LocalMap
+    from linear_slam_ros.joining.sequential import SequentialState, sequential_step
+
+    p2 = np.array([POSE, POSE], np.int8)
+    a = LocalMap(2, 0, 2, np.array([1, 2]), p2, np.array([1.0, 0, 0.1, 2.0, 0.2, 0.3]), np.eye(6) * 100, "a")
+    first = sequential_step(SequentialState(), a)
+    assert (first.global_map.frame_id, first.global_map.end_id) == (2, 2)  # robocentric from the first submap
+    only_common = LocalMap(2, 2, 1, np.array([1, 0]), p2, first.global_map.x + 0.01, np.eye(6) * 100, "c")
+    assert sequential_step(first, only_common).global_map.frame_id == 1  # its end pose, though nothing is new
+    no_end = LocalMap(2, 2, None, np.array([3]), np.array([POSE], np.int8), np.array([1.0, 0, 0]), np.eye(3) * 100, "d")
+    after = sequential_step(first, no_end).global_map
+    assert (after.frame_id, after.end_id) == (2, 2)  # no end pose: the map stays where it was
+    # a submap in the frame of a pose the map lacks (4), holding the map's frame pose (2)
+    holds_frame = LocalMap(2, 4, 5, np.array([2, 5]), p2, np.array([-1.0, 0, 0, 1.0, 0, 0]), np.eye(6) * 100, "e")
+    joined = sequential_step(first, holds_frame).global_map.to_local_map()
+    assert joined.frame_id == 5 and sorted(joined.pose_ids.tolist()) == [0, 1, 2, 4]

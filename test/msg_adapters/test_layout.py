@@ -221,6 +221,8 @@ def test_map_message_information_errors():
     enc = encode_map(m, 1)
     for rows, cols, vals, match in (
         ([0, 5], [0, 1], [1.0, 1.0], "information index out of range for a state of 2 values"),
+        ([0, -1], [0, 0], [1.0, 1.0], "information index out of range for a state of 2 values"),  # negative
+        ([0, 0], [0, 2], [1.0, 1.0], "information index out of range for a state of 2 values"),  # column n
         ([1, 0], [0, 1], [1.0, 1.0], "must be in the upper triangle"),
         ([0, 0], [0, 0], [1.0, 1.0], "repeated information entry"),
     ):

@@ -17,6 +17,7 @@ from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.ros import node as node_module
 from msg_adapters import Stamp, encode_map
 from msg_adapters.ros import to_msg
+from support import wait_until
 
 
 @pytest.fixture(scope="module")
@@ -113,15 +114,6 @@ def test_a_global_map_of_an_older_state_does_not_overwrite_a_robot_s_newer_pose(
     assert not np.allclose(robot_a[-1], robot_a[0], atol=0.5)
 
 
-def _wait_for(condition, timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if condition():
-            return True
-        time.sleep(0.02)
-    return condition()
-
-
 def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps, monkeypatch):
     """The arrival's pose and the global map's of the same submap both went to /tf with one stamp (review of
     session 26); with ``odom_frame`` the node sends map -> odom (REP-105), composed with the odometry."""
@@ -144,7 +136,7 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
         for seq in range(1, 7):
             node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
             node._flush_poses()
-            assert _wait_for(lambda s=seq, sent=sent: sum(1 for _, _, st in sent if st == (1000 + s, 0)) >= 2)  # arrival + map
+            assert wait_until(lambda s=seq, sent=sent: sum(1 for _, _, st in sent if st == (1000 + s, 0)) >= 2)  # arrival + map
         stamps = [(t.header.stamp.sec, t.header.stamp.nanosec) for t in transforms]
         assert stamps == [(1000 + seq, 0) for seq in range(1, 7)]  # each stamp once, in order
         assert {(t.header.frame_id, t.child_frame_id) for t in transforms} == {("map", odom_frame or "robot")}
@@ -199,9 +191,9 @@ def test_reset_replaces_the_latched_pose_by_an_unknown_one(make_node, maps):
     for seq in (1, 2, 3):
         node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
         node._flush_poses()
-    assert _wait_for(lambda: len(latched.messages) >= 4 and latched.messages[-1].pose.covariance[0] > 0.0)  # the map's
+    assert wait_until(lambda: len(latched.messages) >= 4 and latched.messages[-1].pose.covariance[0] > 0.0)  # the map's
     assert _trigger(node._on_reset).success
-    assert _wait_for(lambda: latched.messages[-1].pose.covariance[0] == -1.0)
+    assert wait_until(lambda: latched.messages[-1].pose.covariance[0] == -1.0)
     cleared = latched.messages[-1]
     assert not np.array(cleared.pose.covariance)[1:].any() and cleared.header.frame_id == "map"
     p, q = cleared.pose.pose.position, cleared.pose.pose.orientation

@@ -6,15 +6,7 @@ import threading
 import time
 
 from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
-
-
-def _wait(condition, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if condition():
-            return True
-        time.sleep(0.005)
-    return condition()
+from support import wait_until
 
 
 def test_jobs_run_at_once_then_at_their_period() -> None:
@@ -22,7 +14,7 @@ def test_jobs_run_at_once_then_at_their_period() -> None:
     start = time.monotonic()
     thread = PeriodicThread([PeriodicTask("tick", lambda: 0.05, lambda: times.append(time.monotonic()))], print, "t")
     try:
-        assert _wait(lambda: len(times) >= 5)
+        assert wait_until(lambda: len(times) >= 5)
     finally:
         assert thread.stop()
     assert times[0] - start < 0.04  # the first run does not wait for a period
@@ -36,12 +28,12 @@ def test_the_period_is_read_before_each_wait() -> None:
     runs: list[float] = []
     thread = PeriodicThread([PeriodicTask("tick", lambda: period[0], lambda: runs.append(time.monotonic()))], print, "t")
     try:
-        assert _wait(lambda: len(runs) == 1)
+        assert wait_until(lambda: len(runs) == 1)
         period[0] = 0.02
         time.sleep(0.1)
         assert len(runs) == 1  # the 10 s wait already begun is not cut short...
         thread.wake()  # ...but after the next run the new period holds
-        assert _wait(lambda: len(runs) >= 4, timeout=2.0)
+        assert wait_until(lambda: len(runs) >= 4, timeout=2.0)
     finally:
         thread.stop()
 
@@ -56,11 +48,11 @@ def test_wake_runs_every_job_now_and_first_due_delays_a_job() -> None:
     thread = PeriodicThread([PeriodicTask("a", lambda: 60.0, run("a")), PeriodicTask("b", lambda: 60.0, run("b"), late)],
                             print, "t")
     try:
-        assert _wait(lambda: runs["a"] == 1)
+        assert wait_until(lambda: runs["a"] == 1)
         time.sleep(0.05)
         assert runs == {"a": 1, "b": 0}  # b's first run is a minute away
         thread.wake()
-        assert _wait(lambda: runs == {"a": 2, "b": 1})
+        assert wait_until(lambda: runs == {"a": 2, "b": 1})
     finally:
         thread.stop()
 
@@ -77,7 +69,7 @@ def test_a_job_that_raises_is_reported_and_the_others_go_on() -> None:
         lambda name, exc: errors.append((name, str(exc))), "t",
     )
     try:
-        assert _wait(lambda: len(errors) >= 3 and ok[0] >= 3)
+        assert wait_until(lambda: len(errors) >= 3 and ok[0] >= 3)
         assert thread.alive
     finally:
         thread.stop()
@@ -112,7 +104,7 @@ def test_a_period_that_cannot_be_read_is_reported_and_the_job_runs_every_second(
     thread = PeriodicThread([PeriodicTask("publish", period, lambda: runs.append(time.monotonic()))],
                             lambda name, exc: errors.append(f"{name}: {exc}"), "t")
     try:
-        assert _wait(lambda: len(runs) >= 2, timeout=3.0)
+        assert wait_until(lambda: len(runs) >= 2, timeout=3.0)
         assert thread.alive
     finally:
         thread.stop()

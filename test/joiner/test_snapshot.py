@@ -466,3 +466,30 @@ def test_a_state_file_that_cannot_be_written_or_names_another_format_is_refused(
     arrays["header"] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
     with pytest.raises(SnapshotError, match="not a linear_slam_ros state file"):
         decode_state(arrays)
+
+
+def test_the_blob_cache_never_names_a_dead_map_s_blob_or_a_deleted_file(tmp_path):
+    """Its two guards were never exercised (mutation audit, session 26): CPython reuses the id() of a dead map,
+    and a blob deleted by ``collect`` must be written again when its map is put again."""
+    from linear_slam_ros.core.local_map import POSE, LocalMap
+
+    store = BlobStore(tmp_path / "blobs", min_bytes=0)
+
+    def make(value: float) -> LocalMap:
+        return LocalMap(2, 0, 1, np.array([1]), np.array([POSE], np.int8), np.full(3, value), np.eye(3), "m")
+
+    first_map = make(1.0)
+    first = store.put(first_map)
+    store.sync()
+    entry = store._written.pop(id(first_map))
+    del first_map
+    gc.collect()
+    second_map = make(2.0)
+    store._written[id(second_map)] = entry  # what id() reuse gives: the dead map's entry under the new map's id
+    second = store.put(second_map)
+    store.sync()
+    assert second != first and store.read(second, "test").x.tolist() == [2.0, 2.0, 2.0]
+    assert store.collect(set()) == 2 and not store.path(second).exists()
+    again = store.put(second_map)  # the same map, its file gone: written again
+    store.sync()
+    assert again == second and store.path(again).exists()

@@ -519,7 +519,8 @@ class JoinerNode(Node):
         with self._lock:
             state = self.joiner.state
             saved = self.joiner.save()
-            pose_stamps = {pid: ns * 1e-9 for pid, ns in self._poses.pose_stamps.items()}
+            # seconds + nanoseconds apart: ns * 1e-9 rounds 1700000003.75 to ...03.7500002
+            pose_stamps = {pid: ns // 1_000_000_000 + (ns % 1_000_000_000) * 1e-9 for pid, ns in self._poses.pose_stamps.items()}
         folder = Path(self.config.save_directory)
         try:
             joined = global_result(state, OutputFrame.FIRST_POSE)

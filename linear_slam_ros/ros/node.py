@@ -716,7 +716,7 @@ class JoinerNode(Node):
     def _tf_output(self, odom_frame: str) -> TfOutput | None:
         """Return the TF output of ``publish_tf``, or ``None`` (with a warning) when nothing can send it here."""
         send, how = tf_sender(self)
-        lookup, how_odom = odom_lookup(self) if odom_frame and send is not None else (None, "")
+        lookup, how_odom = odom_lookup() if odom_frame and send is not None else (None, "")
         if send is None or (odom_frame and lookup is None):
             self.get_logger().warning(f"publish_tf is set but no TF is published: {how if send is None else how_odom}")
             return None

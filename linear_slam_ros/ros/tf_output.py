@@ -183,11 +183,16 @@ def tf_sender(node: Node) -> tuple[TfSender | None, str]:
 
 
 class _OdomBuffer:
-    """A ``tf2_ros`` buffer filled by its listener (own spin thread), looked up without waiting."""
+    """A ``tf2_ros`` buffer filled by its listener, looked up without waiting.
 
-    def __init__(self, tf2_ros: Any, node: Node) -> None:
+    The listener gets a node of its own (``node=None``), spun on its own thread: given the joiner's
+    node with ``spin_thread``, it would add that node to a second executor, which takes it from the
+    joiner's; and on the joiner's executor, ``/tf`` at odometry rates would queue with the submaps.
+    """
+
+    def __init__(self, tf2_ros: Any) -> None:
         self.buffer = tf2_ros.Buffer()
-        self.listener = tf2_ros.TransformListener(self.buffer, node, spin_thread=True)
+        self.listener = tf2_ros.TransformListener(self.buffer, None, spin_thread=True)
 
     def __call__(self, odom_frame: str, base_frame: str, stamp: Time) -> TransformStamped:
         from rclpy.duration import Duration
@@ -199,8 +204,8 @@ class _OdomBuffer:
         return transform
 
 
-def odom_lookup(node: Node) -> tuple[OdomLookup | None, str]:
-    """Return the odometry lookup of ``odom_frame`` (a ``tf2_ros`` buffer and listener on ``node``), and what it uses.
+def odom_lookup() -> tuple[OdomLookup | None, str]:
+    """Return the odometry lookup of ``odom_frame`` (a ``tf2_ros`` buffer and its listener), and what it uses.
 
     Returns:
         ``(lookup, "tf2_ros buffer")``, or ``(None, reason)`` when ``tf2_ros`` cannot be imported.
@@ -209,7 +214,7 @@ def odom_lookup(node: Node) -> tuple[OdomLookup | None, str]:
         tf2_ros = importlib.import_module("tf2_ros")
     except ImportError:
         return None, "odom_frame needs tf2_ros (its buffer), which cannot be imported"
-    return _OdomBuffer(tf2_ros, node), "tf2_ros buffer"
+    return _OdomBuffer(tf2_ros), "tf2_ros buffer"
 
 
 def tf_message_class() -> Any | None:

@@ -128,7 +128,7 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
         assert (odom_frame, base_frame) == ("odom", "robot")
         return odom_base
 
-    monkeypatch.setattr(node_module, "odom_lookup", lambda node: (lookup, "a test lookup"))
+    monkeypatch.setattr(node_module, "odom_lookup", lambda: (lookup, "a test lookup"))
     odom_base = transform_msg(2, np.array([0.5, -1.0, 0.2]), "odom", "robot", Stamp(0, 0))
     for odom_frame in ("", "odom"):
         transforms.clear()
@@ -152,27 +152,40 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
 
 def test_without_an_odometry_buffer_odom_frame_sends_no_tf(make_node, monkeypatch):
     monkeypatch.setattr(node_module, "tf_sender", lambda node: (print, "a test sender"))
-    monkeypatch.setattr(node_module, "odom_lookup", lambda node: (None, "odom_frame needs tf2_ros (its buffer)"))
+    monkeypatch.setattr(node_module, "odom_lookup", lambda: (None, "odom_frame needs tf2_ros (its buffer)"))
     node, _ = make_node(publish_tf=True, odom_frame="odom")
     assert node._tf is None
 
 
-def test_odom_lookup_needs_tf2_ros(rclpy_session):
+def test_odom_lookup_gives_its_listener_a_node_of_its_own(monkeypatch):
+    """tf2_ros's listener with ``spin_thread`` adds its node to an executor of its own: given the joiner's node, that
+    would take the node from the joiner's executor. A stand-in module records the calls (tf2 is not on PyPI)."""
     import importlib.util
-
-    from rclpy.node import Node
+    import sys
+    import types
 
     from linear_slam_ros.ros.tf_output import odom_lookup
 
-    node = Node(f"t{uuid.uuid4().hex[:8]}")
-    try:
-        lookup, how = odom_lookup(node)
-        if importlib.util.find_spec("tf2_ros") is None:  # the PyPI wheels: no tf2 package
-            assert lookup is None and how == "odom_frame needs tf2_ros (its buffer), which cannot be imported"
-        else:
-            assert callable(lookup) and how == "tf2_ros buffer"
-    finally:
-        node.destroy_node()
+    if importlib.util.find_spec("tf2_ros") is None:  # the PyPI wheels: no tf2 package
+        assert odom_lookup() == (None, "odom_frame needs tf2_ros (its buffer), which cannot be imported")
+    calls: list = []
+
+    class Buffer:
+        def lookup_transform(self, target, source, time, timeout):
+            calls.append(("lookup", target, source, time.nanoseconds, timeout.nanoseconds))
+            return "the transform"
+
+    class TransformListener:
+        def __init__(self, buffer, node, *, spin_thread=False):
+            calls.append(("listener", node, spin_thread))
+
+    monkeypatch.setitem(sys.modules, "tf2_ros", types.SimpleNamespace(Buffer=Buffer, TransformListener=TransformListener))
+    lookup, how = odom_lookup()
+    assert how == "tf2_ros buffer" and calls == [("listener", None, True)]
+    from builtin_interfaces.msg import Time
+
+    assert lookup("odom", "base_link", Time(sec=3, nanosec=5)) == "the transform"
+    assert calls[-1] == ("lookup", "odom", "base_link", 3_000_000_005, 0)  # at the pose's stamp, without waiting
 
 
 class _Latched:

@@ -37,7 +37,7 @@ import os
 import threading
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -210,11 +210,21 @@ def _sorted_csc(matrix: sp.spmatrix | sp.sparray) -> sp.csc_matrix:
         shape = csc.shape
     if shape[0] != shape[1]:
         raise SolverError(f"a symmetric positive definite matrix is square, got shape {shape}")
-    if csc.has_canonical_format:
-        return csc
-    csc = csc.copy()
-    csc.sum_duplicates()
-    return csc
+    return summed_duplicates(csc)
+
+
+SparseT = TypeVar("SparseT", sp.csc_matrix, sp.csr_matrix)
+
+
+def summed_duplicates(matrix: SparseT) -> SparseT:
+    """Return a CSC or CSR matrix with sorted indices and repeated entries summed (what scipy reads it as),
+    itself when it is so already, else a copy: solvers that sum in place would change the caller's arrays,
+    and CHOLMOD does not sum them at all."""
+    if matrix.has_canonical_format:
+        return matrix
+    out = matrix.copy()
+    out.sum_duplicates()
+    return out
 
 
 def _csc_arrays(matrix: sp.spmatrix | sp.sparray) -> tuple[int, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray]:

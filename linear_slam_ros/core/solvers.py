@@ -108,10 +108,7 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
     if backend == "sksparse":
         if _cholmod_cholesky is None:
             raise SolverError("backend 'sksparse' requested but scikit-sparse is not installed")
-        csc = matrix if isinstance(matrix, sp.csc_matrix) else sp.csc_matrix(matrix)
-        if not csc.has_canonical_format:  # repeated entries summed, as scipy reads them (CHOLMOD does not)
-            csc = csc.copy()
-            csc.sum_duplicates()
+        csc = cholmod.summed_duplicates(matrix if isinstance(matrix, sp.csc_matrix) else sp.csc_matrix(matrix))
         try:
             factor = _cholmod_cholesky(csc)
             # CHOLMOD may pick an LDL^T factorisation, which does not fail on indefinite input
@@ -122,10 +119,7 @@ def solve_sparse_spd(matrix: sp.spmatrix, rhs: FloatArray, backend: Backend = "a
         return factor(rhs)
     if backend == "cholmod" and _cholespy is not None:
         # scipy-stubs: the csr_matrix overloads omit the bare sp.spmatrix (a mixin there; what sp.bmat returns)
-        csr = sp.csr_matrix(matrix)  # type: ignore[call-overload]
-        if not csr.has_canonical_format:  # summed in a copy: the caller's arrays may be shared
-            csr = csr.copy()
-            csr.sum_duplicates()
+        csr = cholmod.summed_duplicates(sp.csr_matrix(matrix))  # type: ignore[call-overload]
         try:
             solver = _cholespy.CholeskySolverD(
                 csr.shape[0],
@@ -162,10 +156,7 @@ def symmetric_splu(matrix: FloatArray | sp.spmatrix) -> spla.SuperLU:
         SolverError: ``information matrix is singular`` or ``information matrix is not positive
             definite``.
     """
-    csc = sp.csc_matrix(matrix)
-    if not csc.has_canonical_format:  # splu sums repeated entries in place: in a copy, the caller's arrays kept
-        csc = csc.copy()
-        csc.sum_duplicates()
+    csc = cholmod.summed_duplicates(sp.csc_matrix(matrix))  # splu would sum them in the caller's arrays
     try:
         lu = spla.splu(csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:

@@ -287,17 +287,18 @@ def forward_edges(graph: PoseGraph) -> tuple[IntArray, IntArray, FloatArray, Flo
     backward = graph.from_ids > graph.to_ids
     reached = graph.to_ids[~backward]  # poses an edge from an earlier pose reaches
     back = np.flatnonzero(backward & ~np.isin(graph.from_ids, reached))
+    if not back.size:  # every star joins as it is: the graph's own arrays
+        return graph.from_ids, graph.to_ids, graph.measurements, graph.information
     from_ids, to_ids = graph.from_ids.copy(), graph.to_ids.copy()
     measurements, information = graph.measurements.copy(), graph.information.copy()
-    if back.size:
-        d, z = graph.dim, graph.measurements[back]
-        inverse = poses_to_frame(d, z[:, :d], z[:, d:], np.zeros_like(z[:, :d]), np.zeros_like(z[:, d:]))
-        g_inv = np.linalg.inv(inverse.d_frame)
-        info = np.swapaxes(g_inv, 1, 2) @ graph.information[back] @ g_inv
-        from_ids[back], to_ids[back] = graph.to_ids[back], graph.from_ids[back]
-        measurements[back] = np.concatenate([inverse.translations, inverse.angles], 1)
-        information[back] = 0.5 * (info + np.swapaxes(info, 1, 2))
-        logger.info("%s: %d edge(s) to an earlier pose turned round", graph.name, back.size)
+    d, z = graph.dim, graph.measurements[back]
+    inverse = poses_to_frame(d, z[:, :d], z[:, d:], np.zeros_like(z[:, :d]), np.zeros_like(z[:, d:]))
+    g_inv = np.linalg.inv(inverse.d_frame)
+    info = np.swapaxes(g_inv, 1, 2) @ graph.information[back] @ g_inv
+    from_ids[back], to_ids[back] = graph.to_ids[back], graph.from_ids[back]
+    measurements[back] = np.concatenate([inverse.translations, inverse.angles], 1)
+    information[back] = 0.5 * (info + np.swapaxes(info, 1, 2))
+    logger.info("%s: %d edge(s) to an earlier pose turned round", graph.name, back.size)
     return from_ids, to_ids, measurements, information
 
 

@@ -10,7 +10,8 @@ DATASETS ?= ../shared/datasets
 export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
 export ROS_DOMAIN_ID ?= 61
 export LINEAR_SLAM_CACHE := $(CURDIR)/.cache/datasets
-SOURCES := $(shell find linear_slam_ros msg_adapters config resource launch rviz -type f \( -name '*.py' -o -name '*.yaml' -o -name '*.xml' -o -name '*.rviz' -o -name 'linear_slam_ros' \)) setup.py setup.cfg package.xml
+SOURCES := $(shell find linear_slam_ros msg_adapters config resource launch rviz -type f \( -name '*.py' -o -name '*.yaml' -o -name '*.xml' -o -name '*.rviz' -o -name 'linear_slam_ros' \)) setup.py setup.cfg package.xml \
+  $(wildcard bags/vicpark200/vicpark200.mcap)
 ACTIVATE := set +u && source install/setup.bash && set -u
 
 .PHONY: run run-sim test test-slow benchmark setup bags clean

@@ -1,7 +1,8 @@
 """ament_python set-up of linear_slam_ros: console scripts land in lib/linear_slam_ros (setup.cfg).
 
 data_files install what ``ros2 launch`` and RViz find through the package's share directory:
-share/linear_slam_ros/{package.xml, config/*.yaml, config/*.xml, launch/*.launch.py, rviz/*.rviz}.
+share/linear_slam_ros/{package.xml, config/*.yaml, config/*.xml, launch/*.launch.py, rviz/*.rviz}, and
+the demo's default bag, share/linear_slam_ros/bags/vicpark200.
 Console scripts are resolved when they run, not when they are installed: a script whose module
 does not exist yet still installs (and fails only when started).
 """
@@ -22,6 +23,7 @@ setup(
         (f"share/{PACKAGE}/config", glob("config/*.yaml") + glob("config/*.xml")),
         (f"share/{PACKAGE}/launch", glob("launch/*.launch.py")),
         (f"share/{PACKAGE}/rviz", glob("rviz/*.rviz")),
+        (f"share/{PACKAGE}/bags/vicpark200", glob("bags/vicpark200/*")),  # the demo's default bag
     ],
     install_requires=["setuptools"],
     zip_safe=True,

@@ -76,18 +76,19 @@ def read_records(
     path: str | Path, topics: Iterable[str] | None = None, msgtype: str | None = None
 ) -> Iterator[tuple[str, int, bytes, bool]]:
     """Yield ``(topic, time_ns, cdr_bytes, latched)`` of a bag's messages in time order (optionally only ``topics``,
-    only messages of type ``msgtype``, e.g. ``std_msgs/msg/Float64MultiArray``).
+    each matching with or without its leading ``/``; only messages of type ``msgtype``, e.g.
+    ``std_msgs/msg/Float64MultiArray``).
 
     ``latched``: the topic was recorded with a transient-local QoS.
 
     Raises:
         DatasetError: the bag cannot be read (names the bag).
     """
-    wanted = set(topics) if topics is not None else None
+    wanted = {t.lstrip("/") for t in topics} if topics is not None else None
     try:
         with Reader(Path(path)) as reader:
             conns = [c for c in reader.connections
-                     if (wanted is None or c.topic in wanted) and (msgtype is None or c.msgtype == msgtype)]
+                     if (wanted is None or c.topic.lstrip("/") in wanted) and (msgtype is None or c.msgtype == msgtype)]
             for conn, time_ns, raw in reader.messages(connections=conns):
                 latched = any(
                     getattr(q, "durability", None) == QosDurability.TRANSIENT_LOCAL

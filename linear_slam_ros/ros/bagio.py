@@ -57,14 +57,24 @@ def check_replaceable_bag(path: Path) -> None:
         raise DatasetError(f"{path} exists and is not a bag ({what}): not replaced; give another --out or remove it")
 
 
+def full_topic_name(topic: str) -> str:
+    """Return ``topic`` as rosbag2 records it: fully qualified (``local_map``: ``/local_map``).
+
+    ``ros2 bag record`` stores the names the ROS graph reports, which always start with ``/``, and
+    ``ros2 bag play --topics`` / ``--exclude-topics`` and QoS override files compare names as
+    written; so a bag of relative names would play nothing for ``--topics /local_map``.
+    """
+    return topic if topic.startswith("/") else f"/{topic}"
+
+
 def write_messages(
     path: Path, records: Iterable[tuple[str, int, Encoded | bytes]], latched: set[str] | None = None, overwrite: bool = False,
     custom_data: Mapping[str, str] | None = None,
 ) -> int:
     """Write ``(topic, time_ns, message)`` records to an MCAP rosbag2 bag; return the count.
 
-    Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes);
-    ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml). With
+    Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes); topics are
+    written fully qualified (:func:`full_topic_name`; ``latched`` names either form); ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml). With
     ``overwrite``, a bag already at ``path`` is replaced; anything else there is never removed.
 
     Raises:
@@ -85,11 +95,13 @@ def write_messages(
         writer.set_custom_data(key, value)
     count = 0
     connections = {}
+    latched_names = {full_topic_name(t) for t in latched or ()}
     with writer:
-        for topic, time_ns, message in records:
+        for given, time_ns, message in records:
+            topic = full_topic_name(given)
             if topic not in connections:
                 connections[topic] = writer.add_connection(
-                    topic, MSGTYPE, typestore=TYPESTORE, offered_qos_profiles=[qos(topic in (latched or set()))]
+                    topic, MSGTYPE, typestore=TYPESTORE, offered_qos_profiles=[qos(topic in latched_names)]
                 )
             raw = message if isinstance(message, (bytes, bytearray, memoryview)) else serialize(message)
             writer.write(connections[topic], int(time_ns), bytes(raw))
@@ -98,8 +110,9 @@ def write_messages(
 
 
 def read_messages(path: Path, topics: Iterable[str] | None = None) -> Iterator[BagRecord]:
-    """Yield the ``Float64MultiArray`` records of a bag in time order (optionally only some topics);
-    messages of other types are not read (:func:`other_topics` names them).
+    """Yield the ``Float64MultiArray`` records of a bag in time order (optionally only some topics,
+    named with or without their leading ``/``); messages of other types are not read
+    (:func:`other_topics` names them).
 
     Raises:
         DatasetError: the bag cannot be read.

@@ -155,7 +155,7 @@ class JoinerRun:
 
     def topic(self, name: str) -> str:
         """Return the full name of one of this joiner's topics."""
-        return f"/{self.namespace}/{name}"
+        return f"/{self.namespace}/{name.lstrip('/')}"  # a bag's names are fully qualified
 
     def global_map(self, node: Node) -> LatestMessage[MapSummary]:
         """Return a subscription to this joiner's latched ``global_map`` (header and stats only)."""

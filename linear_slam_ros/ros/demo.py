@@ -31,7 +31,7 @@ from pathlib import Path
 
 from std_msgs.msg import Float64MultiArray
 
-from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.errors import ConfigError, LinearSlamError
 from linear_slam_ros.core.limits import OUTPUT_LIMITS
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.objective import chi2
@@ -53,6 +53,23 @@ from msg_adapters.bags import bag_parts, deserialize
 
 DEFAULT_DATASET = Path("bags/vicpark200")
 """The committed bag of VicPark_200 (``bags/README.md``): a dataset source like its archive, with the same maps."""
+
+
+def default_bag() -> Path:
+    """Return the bag ``demo`` replays by default: :data:`DEFAULT_DATASET` in the current folder (a
+    checkout), else the copy installed in the package's share folder (``ros2 run linear_slam_ros demo``
+    from anywhere), else :data:`DEFAULT_DATASET` (which then fails naming it)."""
+    if DEFAULT_DATASET.exists():
+        return DEFAULT_DATASET
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        installed = Path(get_package_share_directory("linear_slam_ros")) / DEFAULT_DATASET
+        if (installed / "metadata.yaml").is_file():
+            return installed
+    except Exception:  # not installed with colcon
+        pass
+    return DEFAULT_DATASET
 
 
 def joiner_command(executable: str = "joiner", module: str = "linear_slam_ros.ros.node") -> list[str]:
@@ -314,7 +331,8 @@ def run_sim_demo(
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point."""
     ap = argparse.ArgumentParser(prog="demo", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--bag", type=Path, default=DEFAULT_DATASET, help="the bag to replay (default: bags/vicpark200)")
+    ap.add_argument("--bag", type=Path, default=None,
+                    help="the bag to replay (default: bags/vicpark200 here, else the copy installed with the package)")
     ap.add_argument(
         "--dataset", type=Path, default=None,
         help="the dataset the bag was made from: made into --bag when the bag is missing, and the maps the χ² is "
@@ -332,15 +350,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--n-maps", type=int, default=200, help="--sim: local maps sim_frontend publishes")
     ap.add_argument("--sim-rate", type=float, default=20.0, help="--sim: local maps a second, Hz")
     args = ap.parse_args(argv)
-    if args.sim:
-        try:
+    try:
+        if args.sim:
             report = run_sim_demo(args.out, args.n_maps, args.sim_rate, mode=args.mode)
-        except ConfigError as exc:
-            print(f"demo: {exc}", file=sys.stderr)
-            return 2
-    else:
-        dataset = args.dataset if args.dataset is not None else args.bag  # --bag OTHER was scored against VicPark200
-        report = run_demo(dataset, args.bag, args.out, args.mode, args.rate_factor, refine=args.refine)
+        else:
+            bag = args.bag if args.bag is not None else default_bag()
+            dataset = args.dataset if args.dataset is not None else bag  # --bag OTHER was scored against VicPark200
+            report = run_demo(dataset, bag, args.out, args.mode, args.rate_factor, refine=args.refine)
+    except LinearSlamError as exc:  # a missing or unreadable bag or dataset, a bad option
+        print(f"demo: {exc}", file=sys.stderr)
+        return 2
     print(json.dumps(report, indent=2))
     ok = report["n_submaps_joined"] == report["n_submaps_sent"] and report["joiner_exit_code"] == 0
     return 0 if ok else 1

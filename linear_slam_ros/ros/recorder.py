@@ -29,12 +29,18 @@ from linear_slam_ros.ros.spin import node_session, spin_until
 
 
 class Recorder:
-    """Collects raw messages of some topics from a node."""
+    """Collects raw messages of some topics from a node, under their resolved names (``/global_map``:
+    what ``ros2 topic list`` shows and ``ros2 bag record`` stores).
+
+    Attributes:
+        names: the resolved name of each topic, in the order given.
+    """
 
     def __init__(self, node: Node, topics: Sequence[str]) -> None:
         self.records: list[tuple[str, int, bytes]] = []
-        for topic in topics:
-            node.create_subscription(Float64MultiArray, topic, self._callback(topic), recorder_qos(), raw=True)
+        self.names = [node.resolve_topic_name(topic) for topic in topics]
+        for name in self.names:
+            node.create_subscription(Float64MultiArray, name, self._callback(name), recorder_qos(), raw=True)
         self._clock = node.get_clock()
 
     def _callback(self, topic: str) -> Callable[[bytes], None]:
@@ -75,7 +81,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except (KeyboardInterrupt, ExternalShutdownException):  # Ctrl-C, SIGTERM: the bag is written all the same
             pass
         finally:
-            n = recorder.save(args.out, latched=set(args.topics))  # subscribed transient local: latched publishers
+            n = recorder.save(args.out, latched=set(recorder.names))  # subscribed transient local: latched publishers
             print(f"bag_recorder: recorded {n} messages to {args.out}", file=sys.stderr)
     return 0
 

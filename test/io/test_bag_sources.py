@@ -85,7 +85,7 @@ def test_a_bag_of_pose_graph_chunks_joins_like_its_local_maps(tmp_path):
     intel = BAGS / "Intel"
     chunks = tmp_path / "Intel_chunks1"
     make_bag(intel, chunks, as_pose_graph=True)
-    assert {r.topic for r in read_messages(chunks)} == {"pose_graph"}
+    assert {r.topic for r in read_messages(chunks)} == {"/pose_graph"}
     assert read_source(chunks).kind is MapKind.PG2D
     assert main(["join", str(intel), "--method", "dc", "--out", str(tmp_path / "maps")]) == 0
     assert main(["join", str(chunks), "--method", "dc", "--out", str(tmp_path / "chunks")]) == 0

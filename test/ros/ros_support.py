@@ -94,7 +94,7 @@ class JoinerProcess:
         )
 
     def topic(self, name: str) -> str:
-        return f"/{self.namespace}/{name}"
+        return f"/{self.namespace}/{name.lstrip('/')}"  # a bag's names are fully qualified
 
     def play(self, node, records: list[BagRecord], wait_s: float = 60.0) -> float:
         """Play bag records into this joiner's namespace as fast as possible; return the seconds spent publishing."""

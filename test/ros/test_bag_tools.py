@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -33,6 +35,39 @@ def test_overwrite_replaces_a_bag_and_never_anything_else(tmp_path):
     with pytest.raises(DatasetError, match="notes.txt exists and is not a bag folder: not replaced"):
         write_messages(a_file, [], overwrite=True)
     assert a_file.read_text() == "keep"
+
+
+def test_bags_store_fully_qualified_topic_names_as_rosbag2_does(tmp_path):
+    """`ros2 bag play --topics /local_map` and QoS override files match names as written: rosbag2 writes `/local_map`."""
+    from rosbags.interfaces import QosDurability
+    from rosbags.rosbag2 import Reader
+
+    raw = b"\x00\x01\x00\x00" + bytes(12)
+    bag = tmp_path / "bag"
+    write_messages(bag, [("local_map", 1, raw), ("/robot1/pose_graph", 2, raw), ("global_map", 3, raw)], latched={"global_map"})
+    with Reader(bag) as reader:
+        stored = {c.topic: c.ext.offered_qos_profiles[0].durability for c in reader.connections}
+    assert stored == {"/local_map": QosDurability.VOLATILE, "/robot1/pose_graph": QosDurability.VOLATILE,
+                      "/global_map": QosDurability.TRANSIENT_LOCAL}
+    assert "name: /local_map" in (bag / "metadata.yaml").read_text()
+    for wanted in (["local_map"], ["/local_map"]):  # a reader's filter takes either form
+        assert [r.topic for r in read_messages(bag, wanted)] == ["/local_map"]
+    assert [r.latched for r in read_messages(bag)] == [False, False, True]
+
+
+def test_committed_bags_store_fully_qualified_topic_names():
+    import subprocess
+
+    from rosbags.rosbag2 import Reader
+
+    from support import REPO
+
+    listed = subprocess.run(["git", "ls-files", "bags/*/metadata.yaml"], cwd=REPO, capture_output=True, text=True, check=True)
+    committed = [REPO / Path(line).parent for line in listed.stdout.split()]
+    assert len(committed) == 7
+    for bag in committed:
+        with Reader(bag) as reader:
+            assert all(c.topic.startswith("/") for c in reader.connections), bag
 
 
 @pytest.mark.parametrize(

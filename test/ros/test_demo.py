@@ -65,6 +65,23 @@ def test_sim_demo_refuses_bad_sizes_before_starting_anything(tmp_path, capsys):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_the_demo_finds_its_default_bag_outside_a_checkout_and_refuses_a_missing_one(tmp_path, monkeypatch, capsys):
+    """`ros2 run linear_slam_ros demo` from any folder replays the bag installed with the package."""
+    from linear_slam_ros.ros.demo import DEFAULT_DATASET, default_bag, main
+    from support import REPO, install_prefix
+
+    monkeypatch.chdir(REPO)
+    assert default_bag() == DEFAULT_DATASET  # a checkout: its own bag
+    monkeypatch.chdir(tmp_path)
+    installed = install_prefix() / "share" / "linear_slam_ros" / "bags" / "vicpark200"
+    assert default_bag() == installed
+    assert sorted(p.name for p in installed.iterdir()) == ["metadata.yaml", "vicpark200.mcap"]
+    assert (installed / "vicpark200.mcap").read_bytes() == (REPO / "bags" / "vicpark200" / "vicpark200.mcap").read_bytes()
+    assert main(["--bag", "nowhere", "--out", str(tmp_path / "out")]) == 2
+    assert "demo: dataset 'nowhere' is neither a folder nor a .tar.xz archive" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_the_demo_reads_a_global_map_beyond_the_inputs_condition_bound():
     """The node's outputs are read without the inputs' condition bound (a large map's end frame exceeds it)."""
     import numpy as np

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from linear_slam_ros.core.errors import ConfigError
+from linear_slam_ros.core.errors import ConfigError, InvalidMapError
 from linear_slam_ros.core.local_map import POSE, LocalMap
 
 ROBOT_ID_STRIDE = 1 << 32
@@ -33,16 +33,29 @@ def qualify(submap: LocalMap, slot: int) -> LocalMap:
 
     Raises:
         ConfigError: ``slot`` is negative.
+        InvalidMapError: the submap names one of the robot's poses twice, by its own id and by its
+            global id (``5`` and ``2^32 + 5`` for robot 1): as a variable twice, or as its frame
+            pose and a variable.
     """
     if slot < 0:
         raise ConfigError(f"robot slot {slot} must be >= 0")
     if slot == 0:
         return submap
     offset = slot * ROBOT_ID_STRIDE
-    local = (submap.kinds == POSE) & (submap.ids < ROBOT_ID_STRIDE)
+    poses = submap.kinds == POSE
+    local = poses & (submap.ids < ROBOT_ID_STRIDE)
     ids = np.where(local, submap.ids + offset, submap.ids)
+    frame = global_pose_id(slot, submap.frame_id)
+    pose_ids, counts = np.unique(ids[poses], return_counts=True)
+    twice = [int(i) for i in pose_ids[counts > 1]] + ([frame] if frame in pose_ids else [])
+    if twice:
+        both = twice[0]
+        raise InvalidMapError(
+            f"robot slot {slot}: pose {both - offset} is given twice, by its own id {both - offset} and by its "
+            f"global id {both}{' (frame pose and variable)' if both == frame and len(twice) == 1 else ''}"
+        )
     end = None if submap.end_id is None else global_pose_id(slot, submap.end_id)
-    return submap.replace(ids=ids, frame_id=global_pose_id(slot, submap.frame_id), end_id=end)
+    return submap.replace(ids=ids, frame_id=frame, end_id=end)
 
 
 def robot_slots(robots: Sequence[str]) -> dict[str, int]:

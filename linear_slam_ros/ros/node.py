@@ -310,10 +310,10 @@ class JoinerNode(Node):
         self.n_received += 1
         try:
             submap, seq, stamp = _decode(topic, raw, self.config.limits)
+            submap = qualify(submap, self._slots[robot])
         except LinearSlamError as exc:
             self.joiner.reject("bad_message", f"{topic} rejected: {exc}")
             return
-        submap = qualify(submap, self._slots[robot])
         self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp, robot=robot)
 
     def _replay(self, topic: str, raw: bytes, index: int) -> None:
@@ -323,11 +323,12 @@ class JoinerNode(Node):
             if robot not in self._slots:
                 raise MessageError(f"robot {robot!r} is not in robots={list(self.config.robots)}")
             submap, seq, stamp = _decode(topic, raw, self.config.limits)
+            submap = qualify(submap, self._slots[robot])
         except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
             self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
             self._journal_records = index + 1
             return
-        self._offer(qualify(submap, self._slots[robot]), seq, index, stamp=stamp, robot=robot)
+        self._offer(submap, seq, index, stamp=stamp, robot=robot)
 
     def _offer(
         self, submap: LocalMap, seq: int, record: int | None = None, journal: tuple[str, bytes] | None = None,

@@ -153,6 +153,25 @@ def test_robot_ids_are_global_and_names_checked(maps):
         qualify(m, -1)
 
 
+def test_a_robot_pose_named_both_by_its_own_and_its_global_id_is_refused():
+    """Robot 1's pose 3 sent as 3 and as 2^32 + 3 would be one variable twice once qualified."""
+    from linear_slam_ros.core.errors import InvalidMapError
+    from linear_slam_ros.core.local_map import POSE, LocalMap
+
+    s = ROBOT_ID_STRIDE
+
+    def star(frame: int, ids: list[int]) -> LocalMap:
+        n = len(ids)
+        return LocalMap(2, frame, ids[-1], np.array(ids), np.full(n, POSE), np.arange(3.0 * n), np.eye(3 * n))
+
+    with pytest.raises(InvalidMapError, match=r"robot slot 1: pose 3 is given twice, by its own id 3 and by its global id 4294967299$"):
+        qualify(star(2, [3, s + 3]), 1)
+    with pytest.raises(InvalidMapError, match=r"pose 3 is given twice, .* global id 4294967299 \(frame pose and variable\)"):
+        qualify(star(3, [s + 3, 4]), 1)
+    assert qualify(star(2, [3, 2 * s + 3]), 1).pose_ids.tolist() == [s + 3, 2 * s + 3]  # robot 2's pose 3: another pose
+    assert qualify(star(2, [3, s + 3]), 0).pose_ids.tolist() == [3, s + 3]  # robot 0's ids are not rewritten
+
+
 def test_a_submap_of_the_other_dimension_never_starts_an_island(maps):
     other = noisy_local_maps(make_world(3, 9, 10, np.random.default_rng(5)), np.random.default_rng(6), steps_per_map=3)
     j = Joiner(JoinMethod.ONLINE_DC)

@@ -55,14 +55,21 @@ def test_two_robots_publish_into_one_map(node, start_joiner, maps):
     qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     subs = [node.create_subscription(PoseWithCovarianceStamped, joiner.topic(f"{r}/pose"),
                                      lambda msg, r=r: received.__setitem__(r, msg), qos) for r in ("a", "b")]
-    joiner.play(node, [r for pair in zip(a, b, strict=False) for r in pair] + a[len(b):] + b[len(a):])
+    # robot b's pose named both by its own id and by its global id: refused, and its seq stays free for the valid one
+    m = maps[half + 1]
+    ids = m.ids.copy()
+    ids[m.ids == m.end_id] = ROBOT_ID_STRIDE + m.frame_id  # its one pose: the end pose, named as the frame pose
+    twice = _records("b/local_map", [m.replace(ids=ids, end_id=ROBOT_ID_STRIDE + m.frame_id)], [2])
+    joiner.play(node, [r for pair in zip(a, b, strict=False) for r in pair][:3] + twice)
+    joiner.play(node, [r for pair in zip(a, b, strict=False) for r in pair][3:] + a[len(b):] + b[len(a):])
     final, _ = wait_for_global_map(node, joiner.topic("global_map"), lambda m: m.n_submaps == len(maps), 30.0, joiner)
     assert spin_until(node, lambda: len(received) == 2, 10.0), sorted(received)
     code, output = joiner.stop()
     for sub in subs:
         node.destroy_subscription(sub)
     assert code == 0, output[-2000:]
-    assert final.islands == (len(maps),) and final.stats["n_rejected"] == 0.0  # robot b's island met robot a's
+    assert final.islands == (len(maps),) and final.stats["n_rejected"] == 1.0  # robot b's island met robot a's
+    assert f"b/local_map rejected: robot slot 1: pose {m.frame_id} is given twice" in output
     b_poses = [int(p) for p in final.local_map.pose_ids if p >= ROBOT_ID_STRIDE]
     assert b_poses and min(b_poses) > ROBOT_ID_STRIDE  # robot b's poses, renamed
     assert received["b"].header.frame_id == "map"

@@ -23,6 +23,7 @@ from msg_adapters.layout import (
     encode_chunk,
     encode_feature_map,
     encode_map,
+    submap_of,
 )
 
 __all__ = [
@@ -43,4 +44,5 @@ __all__ = [
     "encode_chunk",
     "encode_feature_map",
     "encode_map",
+    "submap_of",
 ]

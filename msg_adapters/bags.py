@@ -18,7 +18,7 @@ from linear_slam_ros.core.errors import DatasetError, LinearSlamError
 from linear_slam_ros.core.limits import InputLimits
 from linear_slam_ros.core.local_map import FEATURE, LocalMap
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
-from msg_adapters.layout import Encoded, decode_chunk, decode_map
+from msg_adapters.layout import Encoded, decode_chunk, decode_map, submap_of
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 MSGTYPE = "std_msgs/msg/Float64MultiArray"
@@ -185,7 +185,7 @@ def read_bag_submaps(path: str | Path, kind: str | None = None, limits: InputLim
                 local_map, seq = chunk_to_local_map(chunk.graph, limits), chunk.seq
             else:
                 decoded = decode_map(*parts, limits=limits)
-                local_map, seq = decoded.local_map, decoded.seq
+                local_map, seq = submap_of(decoded), decoded.seq
         except LinearSlamError as exc:
             raise DatasetError(f"bag {where}: message {i + 1} on {topic}: {exc}") from None
         except Exception as exc:  # a message that is not a Float64MultiArray of ours

@@ -481,6 +481,21 @@ def decode_map_summary(
     return MapSummary(int(h[1]), int(h[2]), int(h[3]), Stamp(int(h[4]), int(h[5])), int(h[8]), _stats(seg))
 
 
+def submap_of(message: MapMessage) -> LocalMap:
+    """Return the local map a decoded ``local_map`` message carries, to be joined.
+
+    Raises:
+        MessageError: the message is a global map (``map_kind`` 1, the joiner's own output):
+            joined as a submap, every measurement in it would count twice.
+    """
+    if message.map_kind != MAP_KIND_LOCAL:
+        raise MessageError(
+            f"{message.local_map.name}: map_kind {message.map_kind} is a global map (a joiner's output); "
+            f"only local maps (map_kind {MAP_KIND_LOCAL}) are joined"
+        )
+    return message.local_map
+
+
 def decode_map(
     labels: Sequence[str], sizes: Sequence[int], data: FloatArray, data_offset: int = 0, limits: InputLimits | None = None
 ) -> MapMessage:

@@ -19,8 +19,11 @@ from linear_slam_ros.core.geometry import drot2, rot2
 
 FloatArray = npt.NDArray[np.float64]
 
-_DEGENERATE = 1e-9
-"""Relative length below which frame features count as coincident (or collinear)."""
+_DEGENERATE = 1e-6
+"""Relative length below which frame features count as coincident (or collinear): the frame's
+direction, and so a map converted into it, is conditioned as (scale / baseline)^2, which at 1e-6
+is 1e12, near what double precision solves (at 1e-8 the conversion's normal equations were
+singular)."""
 
 
 def n_frame_features(dim: int) -> int:
@@ -108,8 +111,11 @@ def choose_frame_features(dim: int, positions: dict[int, FloatArray], candidates
     """Pick well-conditioned frame features among ``candidates``: the farthest pair (2D), then in
     3D the third feature farthest from their line.
 
+    The frame they define passes :func:`frame_rotation`'s checks, so a map can be converted into it.
+
     Raises:
-        GeometryError: too few candidates, or all of them degenerate.
+        GeometryError: too few candidates, or all of them degenerate: coincident (the farthest two
+            less than :data:`_DEGENERATE` times the coordinates' scale apart) or, in 3D, collinear.
     """
     cand = [int(c) for c in candidates]
     k = n_frame_features(dim)
@@ -118,14 +124,15 @@ def choose_frame_features(dim: int, positions: dict[int, FloatArray], candidates
     pts = np.array([positions[c] for c in cand])
     dist = np.linalg.norm(pts[:, None, :] - pts[None, :, :], axis=-1)
     i, j = np.unravel_index(int(np.argmax(dist)), dist.shape)
-    if dist[i, j] <= 0:
-        raise GeometryError(f"common features {cand} all coincide")
+    if dist[i, j] < _DEGENERATE * max(1.0, float(np.abs(pts).max())):
+        raise GeometryError(f"common features {cand} all coincide (at most {dist[i, j]:.3g} m apart)")
     if dim == 2:
         return (cand[i], cand[j])
     axis = (pts[j] - pts[i]) / dist[i, j]
     off = pts - pts[i]
     perp = np.linalg.norm(off - np.outer(off @ axis, axis), axis=1)
     m = int(np.argmax(perp))
-    if perp[m] <= 1e-6 * dist[i, j]:
+    if perp[m] <= _DEGENERATE * dist[i, j]:
         raise GeometryError(f"common features {cand} are collinear")
+    frame_rotation(dim, pts[i], pts[j], pts[m])
     return (cand[i], cand[j], cand[m])

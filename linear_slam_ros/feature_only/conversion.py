@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import numpy as np
 import scipy.sparse as sp
 
+from linear_slam_ros.core.errors import GeometryError
 from linear_slam_ros.core.feature_frames import choose_frame_features, frame_rotation, n_frame_features, reduce_full
 from linear_slam_ros.core.geometry import drot2
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap, to_dense
@@ -69,5 +70,10 @@ def to_feature_only(local_map: LocalMap, frame_ids: Sequence[int] | None = None)
     row_perm = (perm[:, None] * d + np.arange(d)).ravel()
     info_perm = info_f[np.ix_(row_perm, row_perm)]
     params = jac.T @ info_perm @ jac
-    info_fo = params[p:, p:] - params[p:, :p] @ np.linalg.solve(params[:p, :p], params[:p, p:])
+    try:
+        info_fo = params[p:, p:] - params[p:, :p] @ np.linalg.solve(params[:p, :p], params[:p, p:])
+    except np.linalg.LinAlgError:  # the frame features' checks keep this from happening
+        raise GeometryError(
+            f"map {local_map.name!r}: its frame pose is not observable from its features in the frame of {frame_ids}"
+        ) from None
     return FeatureMap(d, tuple(int(f) for f in frame_ids), ids_perm[k:], x_red, 0.5 * (info_fo + info_fo.T), local_map.name)

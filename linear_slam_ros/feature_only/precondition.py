@@ -71,14 +71,19 @@ def precondition_step(group: Group | None, submap: LocalMap) -> tuple[LocalMap |
 
 
 def _frame_possible(dim: int, local_map: LocalMap, shared: IntArray) -> bool:
+    """Whether the group ``local_map`` can close: the ``shared`` features define a frame in it, and so do
+    all its features (the frame it is converted into, :func:`~linear_slam_ros.feature_only.conversion.to_feature_only`).
+
+    A group whose features coincide (or are collinear in 3D) is merged with the next map instead:
+    closed, it could not be converted, and neither could any later map close it.
+    """
     if shared.size < n_frame_features(dim):
         return False
-    if dim == 2:
-        return True
     pos = {int(local_map.ids[i]): local_map.x[local_map.scalar_slice(int(i))]
            for i in np.flatnonzero(local_map.kinds == FEATURE)}
     try:
         choose_frame_features(dim, pos, shared.tolist())
+        choose_frame_features(dim, pos, list(pos))
     except GeometryError:
         return False
     return True

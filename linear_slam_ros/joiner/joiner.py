@@ -387,8 +387,9 @@ def _fuse(
         The new state, the gate's decision (``None``: no gate) and what was joined (``None``:
         nothing; then only the state's relabels change, and the caller uses up the sequence number).
     """
-    if not probability:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids
-        joined = state.relabels.apply(submap) if state.relabels.aliases else submap
+    if not probability:  # features the gate re-initialised earlier (a state saved with the gate on) keep their new ids;
+        # the ids of re-initialised landmarks are refused with the gate off too: it may be turned on later
+        joined = state.relabels.apply(submap)
         return join(state, joined), None, joined
     result = gate_step(state, submap, probability, robot)
     if result.submap is None:

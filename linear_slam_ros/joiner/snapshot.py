@@ -38,6 +38,7 @@ import json
 import logging
 import os
 import re
+import stat
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -232,8 +233,12 @@ def _stage(path: Path, arrays: dict[str, npt.NDArray[Any]]) -> Path:
     """
     tmp = path.with_name(f".{path.name}.tmp")
     path.parent.mkdir(parents=True, exist_ok=True)
-    with open(tmp, "wb") as fh:
-        np.savez(fh, allow_pickle=False, **arrays)
+    try:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, allow_pickle=False, **arrays)
+    except BaseException:  # a full disk: what was written of it would hold the space the journal needs
+        tmp.unlink(missing_ok=True)
+        raise
     return tmp
 
 
@@ -386,6 +391,8 @@ def blob_names(path: Path) -> set[str]:
             header = json.loads(bytes(npz["header"]).decode())
     except FileNotFoundError:
         raise SnapshotError(f"state file {path} does not exist") from None
+    except SnapshotError:
+        raise
     except Exception as exc:  # a trust boundary, as in _read_arrays
         raise SnapshotError(f"state file {path}: header cannot be read ({exc})") from None
     names = header.get("blobs", []) if isinstance(header, dict) else []
@@ -489,6 +496,8 @@ def _decode_state(arrays: dict[str, npt.NDArray[Any]], where: str, blobs: BlobSt
 
 def _read_arrays(path: Path) -> dict[str, npt.NDArray[Any]]:
     try:
+        if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would block the reader, /dev/zero never end
+            raise SnapshotError(f"state file {path} is not a regular file")
         data = path.read_bytes()
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             return {k: npz[k] for k in npz.files}

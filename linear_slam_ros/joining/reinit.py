@@ -30,7 +30,7 @@ from linear_slam_ros.joining.gate import GateResult, marginalise_out
 
 RELABEL_BASE = -(1 << 40)
 """Feature ids at or below this name re-initialised landmarks (the joiner's); a front-end's submap carrying one
-is refused while the gate is on. Re-initialisation ``k`` (from 0) gets id ``RELABEL_BASE - k``."""
+is refused, with the gate on or off (it may be turned on later). Re-initialisation ``k`` (from 0) gets id ``RELABEL_BASE - k``."""
 
 
 @dataclass(frozen=True)

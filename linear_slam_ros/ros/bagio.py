@@ -74,7 +74,8 @@ def write_messages(
     """Write ``(topic, time_ns, message)`` records to an MCAP rosbag2 bag; return the count.
 
     Messages are ``std_msgs/msg/Float64MultiArray`` (given encoded or as CDR bytes); topics are
-    written fully qualified (:func:`full_topic_name`; ``latched`` names either form); ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml). With
+    written fully qualified (:func:`full_topic_name`; ``latched`` names either form);
+    ``custom_data`` goes to the bag's metadata (``custom_data`` of metadata.yaml). With
     ``overwrite``, a bag already at ``path`` is replaced; anything else there is never removed.
 
     Raises:

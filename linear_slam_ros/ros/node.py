@@ -61,7 +61,7 @@ from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbo
 from linear_slam_ros.ros.raw_publish import publish_serialized
 from linear_slam_ros.ros.spin import print_usage_if_asked
 from linear_slam_ros.ros.tf_output import TF_PARAMETERS, TfOutput, odom_lookup, tf_sender
-from msg_adapters import Encoded, Stamp, decode_chunk, decode_map
+from msg_adapters import Encoded, Stamp, decode_chunk, decode_map, submap_of
 from msg_adapters.cdr import to_cdr
 from msg_adapters.global_map import encode_empty_global, encode_global
 from msg_adapters.ros import parts
@@ -196,6 +196,9 @@ class JoinerNode(Node):
         self._journal_records = 0  # journal records the joiner state includes
         self._snapshot_records = -1  # journal records of the newest snapshot
         self._snapshot_joined = 0  # submaps joined in the newest snapshot
+        # a gap given up by the reorder timeout is a decision no journal record holds: snapshot it soon, or a
+        # restart would wait for that number again (and join it, late, where this run skipped it)
+        self._snapshot_wanted = False
         self._persist_seconds = {"journal": 0.0, "snapshot": 0.0, "restore": 0.0}
         # the same in CPU time of the thread doing it, with the joins' for comparison: wall time around
         # a journal write also counts the wait for the interpreter lock at its system call
@@ -247,6 +250,12 @@ class JoinerNode(Node):
         first_summary = time.monotonic() + config.summary_period  # an idle start says nothing at once
         tasks.append(PeriodicTask("summary", lambda: self.config.summary_period, self._on_summary_timer, first_summary))
         self._outputs = PeriodicThread(tasks, self._on_output_error, name="linear_slam_outputs")
+        # the journal's fsyncs on a thread of their own: behind a publication of seconds (a large map) on the
+        # output thread, they came 2-3 s apart, beyond the power-cut bound the README gives
+        self._syncer = None if self.store is None else PeriodicThread(
+            [PeriodicTask("journal_sync", lambda: SNAPSHOT_CHECK_PERIOD, self._on_sync_timer)], self._on_output_error,
+            name="linear_slam_journal_sync",
+        )
         self.get_logger().info(
             f"joiner ready: mode={config.mode.value}, map_type={config.map_type.value}, "
             f"output_frame={config.output_frame.value}, map_frame={config.map_frame}, queue_depth={depth or 'keep all'}"
@@ -317,17 +326,23 @@ class JoinerNode(Node):
         self._offer(submap, seq, journal=(topic, raw), arrived=arrived, stamp=stamp, robot=robot)
 
     def _replay(self, topic: str, raw: bytes, index: int) -> None:
-        """Offer journal record ``index`` again (recovery): decoded as on arrival, not journaled twice."""
+        """Offer journal record ``index`` again (recovery): decoded as on arrival, not journaled twice.
+
+        Raises:
+            ConfigError: the record no longer decodes (another ``robots`` list, lower input limits):
+                skipped, it would be lost for good once the next snapshot counted it.
+        """
         robot = topic.rpartition("/")[0]
         try:
             if robot not in self._slots:
                 raise MessageError(f"robot {robot!r} is not in robots={list(self.config.robots)}")
             submap, seq, stamp = _decode(topic, raw, self.config.limits)
             submap = qualify(submap, self._slots[robot])
-        except LinearSlamError as exc:  # cannot happen for what was journaled: it was decoded then
-            self.get_logger().warning(f"journaled {topic} message no longer decodes: {exc}")
-            self._journal_records = index + 1
-            return
+        except LinearSlamError as exc:  # it was decoded when journaled: robots or the limits changed since
+            raise ConfigError(
+                f"journal record {index} ({topic}) no longer decodes: {exc}; start with the robots and input limits it "
+                "was journaled with, or with another state_dir"
+            ) from None
         self._offer(submap, seq, index, stamp=stamp, robot=robot)
 
     def _offer(
@@ -448,7 +463,13 @@ class JoinerNode(Node):
     def _on_expire_timer(self) -> None:
         """Give up a missing sequence number that has held the stream up for ``reorder_timeout`` s; the submaps
         that wait behind it are joined then, recorded, and their pose published as on arrival."""
-        self._join_and_publish(self.joiner.expire)
+        def expire() -> list[tuple[str, int]]:
+            joined = self.joiner.expire()
+            if joined and self.store is not None:
+                self._snapshot_wanted = True
+            return joined
+
+        self._join_and_publish(expire)
 
     def _join_and_publish(self, join: Callable[[], list[tuple[str, int]]]) -> None:
         """Run ``join`` (a joiner call that joins waiting submaps: ``(robot, seq)`` of each) under the lock;
@@ -619,6 +640,7 @@ class JoinerNode(Node):
         with self._snapshot_lock:
             with self._lock:
                 saved = self.joiner.save(self._journal_records)
+                self._snapshot_wanted = False
             t0, c0 = time.perf_counter(), time.thread_time()
             try:
                 self.store.journal.sync()  # the snapshot never includes records the disk lacks (appends go on)
@@ -631,12 +653,16 @@ class JoinerNode(Node):
             self._snapshot_records = saved.journal_records
             self._snapshot_joined = saved.state.n_joined
 
+    def _on_sync_timer(self) -> None:
+        store = self.store
+        if store is not None:
+            store.journal.maybe_sync()  # off the joining thread; a journal that falls quiet gets synced too
+
     def _on_snapshot_timer(self) -> None:
         if self.store is None:
             return
-        self.store.journal.maybe_sync()  # off the joining thread; a journal that falls quiet gets synced too
         with self._lock:
-            due = self.joiner.state.n_joined - self._snapshot_joined >= self.config.snapshot_period
+            due = self._snapshot_wanted or self.joiner.state.n_joined - self._snapshot_joined >= self.config.snapshot_period
         if due:
             self._snapshot()
 
@@ -645,6 +671,8 @@ class JoinerNode(Node):
         destroy the node."""
         if not self._outputs.stop():
             self.get_logger().warning("the output thread did not stop within 30 s")
+        if self._syncer is not None and not self._syncer.stop():
+            self.get_logger().warning("the journal's sync thread did not stop within 30 s")
         if self.store is not None:
             self._snapshot()
             self.store.close()
@@ -1026,8 +1054,8 @@ def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int,
     the numbers are checked by the validation of the decoded map or graph and of the chunk's map.
 
     Raises:
-        MessageError: the bytes are not a Float64MultiArray, it does not follow the layout, or
-            a size is above its limit.
+        MessageError: the bytes are not a Float64MultiArray, it does not follow the layout, a
+            size is above its limit, or a ``local_map`` message carries a global map.
         LinearSlamError: the map or pose graph it carries is invalid (a numeric limit included).
     """
     try:
@@ -1038,7 +1066,7 @@ def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int,
         chunk = decode_chunk(*parts(msg), limits=limits)
         return chunk_to_local_map(chunk.graph, limits), chunk.seq, chunk.stamp
     decoded = decode_map(*parts(msg), limits=limits)
-    return decoded.local_map, decoded.seq, decoded.stamp
+    return submap_of(decoded), decoded.seq, decoded.stamp
 
 
 def _key(robot: str, seq: int) -> Any:
@@ -1097,8 +1125,8 @@ def main(args: list[str] | None = None) -> None:
         executor = SingleThreadedExecutor()  # outputs have their own thread (PeriodicThread)
         executor.add_node(node)
         executor.spin()
-    except (ConfigError, SnapshotError, JournalError) as exc:
-        rclpy.logging.get_logger(NODE_NAME).fatal(f"cannot start: {exc}")
+    except (ConfigError, SnapshotError, JournalError) as exc:  # at start-up, or a journal that failed since (disk full)
+        rclpy.logging.get_logger(NODE_NAME).fatal(f"{'cannot start' if node is None else 'stopped'}: {exc}")
         rclpy.try_shutdown()
         sys.exit(2)
     except (KeyboardInterrupt, ExternalShutdownException):

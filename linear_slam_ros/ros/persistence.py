@@ -122,6 +122,10 @@ class StateStore:
                 point ``state_dir`` elsewhere or use the same mode).
         """
         t0 = time.perf_counter()
+        for folder in (self.snapshot_dir, self.blobs.folder):  # files a kill left half-written: never read, only space
+            if folder.is_dir():
+                for tmp in folder.glob(".*.npz.tmp"):
+                    tmp.unlink(missing_ok=True)
         problems: list[str] = []
         restored: Path | None = None
         start, state_file = self._start(problems)
@@ -182,16 +186,24 @@ class StateStore:
         return records, Path(state_file) if state_file is not None else None
 
     def mark_start(self, journal_records: int, state_file: Path | None = None) -> None:
-        """Record that a new map starts at journal record ``journal_records``: empty (a reset), or the state of
-        ``state_file`` (a load); then delete every snapshot (of the old map).
+        """Delete every snapshot (of the old map), then record that a new map starts at journal record
+        ``journal_records``: empty (a reset), or the state of ``state_file`` (a load).
 
         Call it before the joiner changes, and before the snapshot of the new map, with no snapshot
-        written in between (the node holds its snapshot lock): whatever happens afterwards, recovery
-        never brings the old map back.
+        written in between (the node holds its snapshot lock). Killed before ``start.json`` is
+        replaced, recovery rebuilds the old map from the journal (the reset did not happen); after,
+        it starts the new one, and no snapshot of the old map is left for it to take (the newest,
+        taken at the same journal count, would pass for the new map's).
 
         Raises:
-            OSError: ``start.json`` cannot be written (nothing was deleted).
+            OSError: ``start.json`` cannot be written (the old map's snapshots are gone: recovery
+                would replay its journal).
         """
+        with self._snapshot_lock:
+            for _, old in self.snapshots():
+                old.unlink(missing_ok=True)
+            if self.snapshot_dir.is_dir():
+                fsync_path(self.snapshot_dir)
         self.folder.mkdir(parents=True, exist_ok=True)
         path = self.folder / START_NAME
         tmp = path.with_name(f".{START_NAME}.tmp")
@@ -202,14 +214,11 @@ class StateStore:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
         fsync_path(self.folder)
-        with self._snapshot_lock:
-            for _, old in self.snapshots():
-                old.unlink(missing_ok=True)
 
     def open_journal(self, first_index: int = 0) -> Journal:
         """Open the journal for appending (a new storage file of the same bag); its next record's index is at
         least ``first_index`` (the journal records the restored state includes: :attr:`Recovery.journal_records`)."""
-        if self._journal is None:  # fsyncs run on the node's output thread (maybe_sync), never inside an append
+        if self._journal is None:  # fsyncs run on the node's sync thread (maybe_sync), never inside an append
             self._journal = Journal.open(self.journal_dir, sync_in_append=False, first_index=first_index)
         return self._journal
 

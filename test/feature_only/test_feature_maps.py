@@ -70,6 +70,41 @@ def test_degenerate_frame_features_are_rejected():
         choose_frame_features(3, {1: np.zeros(3), 2: np.ones(3), 3: 2 * np.ones(3)}, [1, 2, 3])
 
 
+def test_frame_features_closer_than_a_millionth_of_the_scale_count_as_coincident():
+    """At 5e-8 m on a 9 m scale a map converted into their frame had singular normal equations."""
+    near = {10: np.array([9.0, 2.0]), 11: np.array([9.0 + 5e-8, 2.0])}
+    with pytest.raises(GeometryError, match=r"common features \[10, 11\] all coincide \(at most 5e-08 m apart\)"):
+        choose_frame_features(2, near, [10, 11])
+    with pytest.raises(GeometryError, match=r"F_O and F_X coincide \(\|F_X - F_O\| = 5e-08 m\)"):
+        frame_rotation(2, near[10], near[11])
+    assert choose_frame_features(2, {10: near[10], 11: np.array([9.0 + 1e-5, 2.0])}, [10, 11]) == (10, 11)
+    with pytest.raises(GeometryError, match=r"all coincide \(at most 0.001 m apart\)"):  # relative to 2000 m
+        choose_frame_features(2, {1: np.array([2000.0, 0.0]), 2: np.array([2000.001, 0.0])}, [1, 2])
+    with pytest.raises(GeometryError, match="all coincide"):
+        choose_frame_features(3, {1: np.zeros(3), 2: np.zeros(3), 3: np.zeros(3)}, [1, 2, 3])
+
+
+def test_a_frame_pose_that_its_features_cannot_place_is_a_geometry_error(monkeypatch):
+    """The frame features' checks keep the conversion's normal equations regular; were they singular, the
+    conversion says so as a GeometryError (which the feature-only joiner handles), not numpy's LinAlgError."""
+    import linear_slam_ros.feature_only.conversion as conversion
+
+    local = noisy_local_maps(make_world(2, 12, 30, np.random.default_rng(5)), np.random.default_rng(6), 6, sensor_range=9)[0]
+
+    solve, calls = np.linalg.solve, []
+
+    def singular(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        calls.append(a.shape)
+        if len(calls) == 2:  # the first marginalises the poses out, the second the frame pose
+            raise np.linalg.LinAlgError("Singular matrix")
+        return solve(a, b)
+
+    monkeypatch.setattr(conversion.np.linalg, "solve", singular)
+    with pytest.raises(GeometryError, match=r"its frame pose is not observable from its features in the frame of \("):
+        conversion.to_feature_only(local)
+    assert calls[1] == (3, 3)
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("joiner", [join_features_sequential, join_features_dc])
 def test_noise_free_maps_give_the_truth(dim, joiner):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from linear_slam_ros.core.errors import InvalidMapError
-from linear_slam_ros.core.local_map import FEATURE, POSE
+from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
 from linear_slam_ros.feature_only.conversion import to_feature_only
 from linear_slam_ros.feature_only.joining import join_features_dc, join_features_sequential
@@ -66,6 +66,32 @@ def test_the_open_group_waits_for_a_feature_frame():
     assert (one_feature.kinds == POSE).sum() == 1 and (one_feature.kinds == FEATURE).sum() == 1
     state = feature_step(FeatureJoinState(), one_feature, divide_and_conquer=False)
     assert feature_result(state) is None  # one feature defines no frame yet
+
+
+def _two_feature_map(frame: int, f10: list[float], f11: list[float]) -> LocalMap:
+    """A 2D map from pose ``frame`` to ``frame + 1`` (1 m ahead) seeing features 10 and 11."""
+    x = np.r_[1.0, 0.0, 0.0, f10, f11]
+    return LocalMap(2, frame, frame + 1, np.array([frame + 1, 10, 11]), np.array([POSE, FEATURE, FEATURE]), x,
+                    np.diag([100.0, 100, 100, 10, 10, 10, 10]), name=f"local map {frame + 1}")
+
+
+@pytest.mark.parametrize("method", [JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC])
+def test_a_submap_whose_features_coincide_is_merged_with_the_next_and_never_blocks_the_map(method):
+    """Alone, submap 3 (features 10 and 11 5e-8 m apart) defines no frame: the group it starts is merged with
+    submap 4 instead of closed (closed, it could not be converted, and each later submap failed closing it)."""
+    maps = []
+    for s in range(1, 9):
+        c = [9.0 - s, 2.0]
+        maps.append(_two_feature_map(s - 1, c, [c[0] + 5e-8, 2.0] if s == 3 else [c[0], 5.0]))
+    j = Joiner(method, MapType.FEATURE_ONLY)
+    assert [j.offer(m, seq) for seq, m in enumerate(maps, start=1)] == [[s] for s in range(1, 9)]
+    assert sum(j.rejected.values()) == 0
+    groups = precondition(maps)
+    assert [g.name for g in groups] == ["local map 1", "local map 2", "local map 3+", "local map 5", "local map 6",
+                                        "local map 7", "local map 8"]
+    joined = global_feature_map_of(j.state)
+    assert joined is not None and np.all(np.isfinite(joined.x)) and sorted(joined.all_ids.tolist()) == [10, 11]
+    np.testing.assert_allclose(joined.x, join_features_sequential([to_feature_only(g) for g in groups]).x, atol=1e-12)
 
 
 def test_bad_submaps_are_rejected_and_leave_the_state_unchanged():

@@ -164,7 +164,8 @@ def test_a_robot_pose_named_both_by_its_own_and_its_global_id_is_refused():
         n = len(ids)
         return LocalMap(2, frame, ids[-1], np.array(ids), np.full(n, POSE), np.arange(3.0 * n), np.eye(3 * n))
 
-    with pytest.raises(InvalidMapError, match=r"robot slot 1: pose 3 is given twice, by its own id 3 and by its global id 4294967299$"):
+    with pytest.raises(InvalidMapError, match=r"robot slot 1: pose 3 is given twice, by its own id 3 and by its global id "
+                                              r"4294967299$"):
         qualify(star(2, [3, s + 3]), 1)
     with pytest.raises(InvalidMapError, match=r"pose 3 is given twice, .* global id 4294967299 \(frame pose and variable\)"):
         qualify(star(3, [s + 3, 4]), 1)

@@ -7,9 +7,11 @@ import gc
 import hashlib
 import io
 import json
+import os
 import threading
 import zipfile
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -245,6 +247,18 @@ def test_corruptions_are_named_and_never_loaded(maps, tmp_path):
 
     with pytest.raises(SnapshotError, match="missing.npz does not exist"):
         read_snapshot(tmp_path / "missing.npz")
+
+
+def test_only_a_regular_file_is_read_as_a_state(tmp_path):
+    """A FIFO would block the node's executor until a writer closed it, /dev/zero would fill its memory."""
+    fifo = tmp_path / "fifo.npz"
+    os.mkfifo(fifo)
+    with pytest.raises(SnapshotError, match=r"state file .*fifo.npz is not a regular file"):
+        read_snapshot(fifo)
+    with pytest.raises(SnapshotError, match=r"state file /dev/zero is not a regular file"):
+        read_snapshot(Path("/dev/zero"))
+    with pytest.raises(SnapshotError, match=r"state file .* is not a regular file"):
+        read_snapshot(tmp_path)
 
 
 def test_a_state_file_never_runs_code(tmp_path):

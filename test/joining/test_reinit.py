@@ -136,6 +136,8 @@ def test_apply_renames_and_refuses_reserved_ids(maps):
         Relabels().apply(m.replace(ids=ids))
     j = Joiner(JoinMethod.ONLINE_DC, gate_probability=PROBABILITY)
     assert j.offer(m.replace(ids=ids), 1) == [] and j.rejected["InvalidMapError"] == 1  # refused, counted
+    off = Joiner(JoinMethod.ONLINE_DC)  # with the gate off too: turned on later, its first landmark would take that id
+    assert off.offer(m.replace(ids=ids), 1) == [] and off.rejected["InvalidMapError"] == 1
 
 
 def test_a_submap_gated_whole_changes_nothing_and_poses_are_never_re_initialised():

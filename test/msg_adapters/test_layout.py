@@ -20,7 +20,16 @@ from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joining.divide_conquer import join_divide_and_conquer
 from linear_slam_ros.pose_graph.chunks import chunk_to_local_map
 from linear_slam_ros.pose_graph.graph import PoseGraph
-from msg_adapters import MAP_KIND_GLOBAL, Stamp, decode_chunk, decode_map, decode_map_summary, encode_chunk, encode_map
+from msg_adapters import (
+    MAP_KIND_GLOBAL,
+    Stamp,
+    decode_chunk,
+    decode_map,
+    decode_map_summary,
+    encode_chunk,
+    encode_map,
+    submap_of,
+)
 from msg_adapters.bags import bag_parts, deserialize, serialize, to_bag_msg
 from msg_adapters.cdr import to_cdr
 from msg_adapters.ros import parts, to_msg
@@ -65,6 +74,16 @@ def test_map_round_trip_is_bit_exact(dim, transport, rng):
         assert (back.seq, back.stamp, back.map_kind, back.n_submaps) == (17, Stamp(1_700_000_000, 123_456_789), kind, 4)
         if stats:
             assert back.stats["n_joined"] == 4.0 and back.stats["join_ms_p99"] == 1.5 and back.stats["n_rejected"] == 0.0
+
+
+def test_only_a_local_map_is_a_submap(rng):
+    """A global map echoed onto local_map would count every measurement in it twice."""
+    local, global_map = _maps(2, rng)
+    assert submap_of(decode_map(*bag_parts(to_bag_msg(encode_map(local, 3))))) is not None
+    echoed = decode_map(*bag_parts(to_bag_msg(encode_map(global_map, 3, map_kind=MAP_KIND_GLOBAL))))
+    with pytest.raises(MessageError, match=r"global map seq 3: map_kind 1 is a global map \(a joiner's output\); "
+                                           r"only local maps \(map_kind 0\) are joined"):
+        submap_of(echoed)
 
 
 def test_rclpy_message_carries_labels_and_cdr_crosses_libraries(rng):

@@ -548,6 +548,7 @@ def _local_cases(stream: str) -> list[Case]:
         Case(stream, "dim-4", edit(_h(1, 4)), r"(?i)dim\w*.*\b4\b"),
         Case(stream, "map_kind-7", edit(_h(2, 7)), r"(?i)map_kind.*\b7\b"),
         Case(stream, "map_kind-2-pose-graph", edit(_h(2, 2)), r"(?i)map_kind.*\b2\b"),
+        Case(stream, "map_kind-1-global-map-echoed", edit(_h(2, 1)), r"map_kind 1 is a global map .* only local maps"),
         Case(stream, "header-8-values", edit(lambda s, c: put(s, "header", seg(s, "header")[:8])), r"(?i)header.*\b8\b"),
         Case(stream, "seq-negative", edit(_h(3, -5)), _seq_re("-5")),
         Case(stream, "seq-zero", edit(_h(3, 0)), _seq_re("0")),

@@ -258,3 +258,49 @@ def test_the_path_carries_each_joined_submap_s_stamp_on_its_end_pose(make_node, 
     first = node_module.global_result(state, "first_pose")
     for k, end in enumerate(ends):
         assert by_pose[round(float(first.pose(end)[0]), 9)] == (1001 + k, 7)
+
+
+def test_a_journal_record_that_no_longer_decodes_stops_the_start(make_node, maps, tmp_path):
+    """Restarted without the robots it journaled, the node refused robot b's records one by one, and the next
+    snapshot counted them: they were lost for good, also once started again with the right list."""
+    from linear_slam_ros.core.errors import ConfigError
+    from linear_slam_ros.ros.persistence import StateStore
+
+    store = StateStore(tmp_path / "state")
+    journal = store.open_journal(0)
+    for seq in (1, 2):
+        journal.append("b/local_map", _raw(maps[seq - 1], seq, Stamp(seq, 0)), 0)
+    store.close()  # a kill -9 before any snapshot: both records to replay
+    with pytest.raises(ConfigError, match=r"journal record 0 \(b/local_map\) no longer decodes: robot 'b' is not in "
+                                          r"robots=\[\]; start with the robots and input limits it was journaled with"):
+        make_node(state_dir=str(tmp_path / "state"))
+    node, _ = make_node(state_dir=str(tmp_path / "state"), robots=["a", "b"])  # as journaled: both come back
+    assert node.joiner.state.n_joined == 2
+
+
+def test_the_journal_is_synced_while_a_long_publication_holds_the_output_thread(make_node, maps, tmp_path, monkeypatch):
+    """Behind publications of seconds (a large map) on the output thread, the journal's fsyncs came 2-3 s apart."""
+    def slow_publication(self) -> None:
+        time.sleep(4.0)
+
+    monkeypatch.setattr(node_module.JoinerNode, "_on_publish_timer", slow_publication)
+    node, _ = make_node(state_dir=str(tmp_path / "state"))
+    time.sleep(0.2)  # the output thread is in its first publication now
+    node._receive("local_map", _raw(maps[0], 1, Stamp(1, 0)))
+    journal = node.store.journal
+    assert journal._unsynced == 1
+    t0 = time.monotonic()
+    assert wait_until(lambda: journal._unsynced == 0, 3.0), "not synced while the output thread was busy"
+    assert time.monotonic() - t0 < 1.6  # fsync_period_s 1 s, checked every 0.25 s
+
+
+def test_a_gap_given_up_by_the_reorder_timeout_is_snapshotted_at_once(make_node, maps, tmp_path):
+    """No journal record holds that decision: a restart waited for the number again and joined it when it came late,
+    where the run before the kill had skipped it."""
+    node, _ = make_node(reorder_timeout=0.3, state_dir=str(tmp_path / "state"), snapshot_period=1000)
+    for seq in (1, 2, 4):  # 3 is lost
+        node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(seq, 0)))
+    assert wait_until(lambda: node.store.snapshots() != [], 1.0) is False  # none due: 2 of 1000 joined
+    node._on_expire_timer()  # (no executor spins here) 3 is given up
+    assert node.joiner.state.n_joined == 3
+    assert wait_until(lambda: [n for n, _ in node.store.snapshots()] == [3], 2.0), node.store.snapshots()

@@ -150,6 +150,76 @@ def test_a_reset_is_never_undone_by_recovery(messages, tmp_path):
     assert global_result(recovered.state).x.tobytes() == global_result(_reference(messages[:4]).state).x.tobytes()
 
 
+@pytest.mark.parametrize("killed", ["at the first snapshot deleted", "once start.json is replaced"])
+def test_a_reset_killed_half_way_recovers_the_old_map_or_the_new_one_never_a_mix(messages, tmp_path, monkeypatch, killed):
+    """The old map's newest snapshot sits at the reset's journal count: left on disk after start.json, recovery took
+    it for the new map's (6 submaps under a map that starts empty, whose seq 1 was then skipped)."""
+    import os
+    from pathlib import Path
+
+    import linear_slam_ros.ros.persistence as persistence
+
+    class Killed(BaseException):
+        pass
+
+    joiner = _session(tmp_path, messages[:6], snapshot_every=3)
+    StateStore(tmp_path).write_snapshot(joiner.save(6))  # the clean stop's snapshot: at the reset's count
+    unlink, replace = Path.unlink, os.replace
+
+    def dying_unlink(path: Path, missing_ok: bool = False) -> None:
+        if path.name.startswith("state_"):
+            raise Killed
+        unlink(path, missing_ok=missing_ok)
+
+    def dying_replace(src: object, dst: object) -> None:
+        replace(src, dst)
+        raise Killed
+
+    if killed == "at the first snapshot deleted":
+        monkeypatch.setattr(Path, "unlink", dying_unlink)
+    else:
+        monkeypatch.setattr(persistence.os, "replace", dying_replace)
+    with pytest.raises(Killed):
+        StateStore(tmp_path).mark_start(6)
+    monkeypatch.undo()
+    recovered = Joiner("online-dc")
+    StateStore(tmp_path).recover(recovered, _offer_to(recovered))
+    if killed == "at the first snapshot deleted":  # the reset did not happen: the old map, exactly
+        assert global_result(recovered.state).x.tobytes() == global_result(joiner.state).x.tobytes()
+    else:  # the reset happened: the new map starts empty and takes seq 1
+        assert recovered.state.n_joined == 0
+        _offer_to(recovered)("local_map", messages[0])
+        assert recovered.n_skipped == 0 and recovered.state.n_joined == 1
+
+
+def test_half_written_snapshots_are_removed_on_failure_and_at_recovery(messages, tmp_path, monkeypatch):
+    """A full disk or a kill left `.state_N.npz.tmp` files for good, eating the space the journal needs."""
+    import errno
+
+    import linear_slam_ros.joiner.snapshot as snapshot
+    from linear_slam_ros.joiner.snapshot import SnapshotError
+
+    joiner = _session(tmp_path, messages[:3], snapshot_every=3)
+    store = StateStore(tmp_path)
+
+    def full(fh, **_arrays) -> None:
+        fh.write(b"PK" + bytes(100))
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(snapshot.np, "savez", full)
+    with pytest.raises(SnapshotError, match="state_4.npz: .*No space left on device"):
+        store.write_snapshot(joiner.save(4))
+    monkeypatch.undo()
+    assert [p.name for p in (tmp_path / "snapshots").iterdir() if p.is_file()] == ["state_3.npz"]
+    killed = [tmp_path / "snapshots" / ".state_5.npz.tmp", tmp_path / "snapshots" / "blobs" / ".abc.npz.tmp"]
+    for path in killed:
+        path.parent.mkdir(exist_ok=True)
+        path.write_bytes(b"PK")
+    recovered = Joiner("online-dc")
+    StateStore(tmp_path).recover(recovered, _offer_to(recovered))
+    assert not any(p.exists() for p in killed) and recovered.state.n_joined == 3
+
+
 def test_a_loaded_state_file_is_where_recovery_starts(messages, tmp_path):
     """``mark_start`` with the loaded file: with no usable snapshot of the new map, the file is read again."""
     from linear_slam_ros.joiner.snapshot import write_snapshot

@@ -17,14 +17,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import numpy.typing as npt
-import scipy.linalg
-import scipy.linalg.lapack
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+
+if TYPE_CHECKING:
+    import scipy.sparse.linalg as spla
 
 from linear_slam_ros.core import cholmod
 from linear_slam_ros.core.errors import SolverError
@@ -41,7 +41,6 @@ except ImportError:  # pragma: no cover
 
 logger = logging.getLogger(__name__)
 
-_trtrs = scipy.linalg.lapack.dtrtrs  # what get_lapack_funcs("trtrs", dtype=np.float64) returns
 
 FloatArray = npt.NDArray[np.float64]
 SparseBackend = Literal["libcholmod", "sksparse", "cholmod", "scipy"]
@@ -76,7 +75,10 @@ def solve_dense_spd(matrix: FloatArray, rhs: FloatArray) -> FloatArray:
 
 
 def _solve_lower(lower: npt.NDArray[np.floating], rhs: FloatArray, trans: int) -> FloatArray:
-    x, info = _trtrs(lower, rhs, lower=1, trans=trans)
+    # scipy.linalg is imported on first use: the refiner's process never needs it (0.1 s of its start-up)
+    from scipy.linalg.lapack import dtrtrs  # what get_lapack_funcs("trtrs", dtype=np.float64) returns
+
+    x, info = dtrtrs(lower, rhs, lower=1, trans=trans)
     if info != 0:  # pragma: no cover - cannot happen after a successful Cholesky
         raise SolverError(f"triangular solve failed (LAPACK info {info})")
     return x
@@ -156,6 +158,8 @@ def symmetric_splu(matrix: FloatArray | sp.spmatrix) -> spla.SuperLU:
         SolverError: ``information matrix is singular`` or ``information matrix is not positive
             definite``.
     """
+    import scipy.sparse.linalg as spla  # on first use (see _solve_lower)
+
     csc = cholmod.summed_duplicates(sp.csc_matrix(matrix))  # splu would sum them in the caller's arrays
     try:
         lu = spla.splu(csc, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})

@@ -128,7 +128,7 @@ class MapObjective:
         """Return the stacked residual ``h(X) - z`` (angles wrapped) and optionally ``dh/dX``."""
         d, p = self.dim, pose_size(self.dim)
         r = np.empty_like(self.z)
-        trip: list[tuple[IntArray, IntArray, FloatArray]] = []
+        parts: list[tuple[IntArray, int, IntArray, int, FloatArray]] = []  # (row starts, rows, col starts, cols, blocks)
         if self.feat_rows.size:
             t_f, a_f = self._frames(x, self.feat_ref)
             pts = x[self.feat_cols[:, None] + np.arange(d)]
@@ -136,9 +136,9 @@ class MapObjective:
             idx = self.feat_rows[:, None] + np.arange(d)
             r[idx] = res.points
             if jacobian:
-                trip.append(_block_triplets(self.feat_rows, d, self.feat_cols, d, np.ascontiguousarray(res.d_point)))
+                parts.append((self.feat_rows, d, self.feat_cols, d, np.ascontiguousarray(res.d_point)))
                 has = self.feat_ref >= 0
-                trip.append(_block_triplets(self.feat_rows[has], d, self.feat_ref[has], p, res.d_frame[has]))
+                parts.append((self.feat_rows[has], d, self.feat_ref[has], p, res.d_frame[has]))
         if self.pose_rows.size:
             t_f, a_f = self._frames(x, self.pose_ref)
             t_v, a_v = self._frames(x, self.pose_cols)  # the origin (-1) is the zero pose
@@ -148,18 +148,42 @@ class MapObjective:
             r[idx[:, d:]] = res_p.angles
             if jacobian:
                 var = self.pose_cols >= 0
-                trip.append(_block_triplets(self.pose_rows[var], p, self.pose_cols[var], p, res_p.d_pose[var]))
+                parts.append((self.pose_rows[var], p, self.pose_cols[var], p, res_p.d_pose[var]))
                 has = self.pose_ref >= 0
-                trip.append(_block_triplets(self.pose_rows[has], p, self.pose_ref[has], p, res_p.d_frame[has]))
+                parts.append((self.pose_rows[has], p, self.pose_ref[has], p, res_p.d_frame[has]))
         r -= self.z
         r[self.angle_rows] = wrap_angle(r[self.angle_rows])
         if not jacobian:
             return r, None
-        rows = np.concatenate([t[0] for t in trip])
-        cols = np.concatenate([t[1] for t in trip])
-        vals = np.concatenate([t[2] for t in trip])
-        jac = sp.csr_matrix((vals, (rows, cols)), shape=(self.z.size, self.n_state))
-        return r, jac
+        return r, self._jacobian(parts)
+
+    def _jacobian(self, parts: list[tuple[IntArray, int, IntArray, int, FloatArray]]) -> sp.csr_matrix:
+        """The Jacobian's CSR matrix from its blocks, as ``csr_matrix((vals, (rows, cols)))`` builds it.
+
+        Its pattern depends on the index records alone, so it is worked out at the first call
+        (scipy's conversion of the triplets, on their positions) and kept: later calls (every
+        step of a refinement round) only permute the blocks' values into it. The same arrays as
+        scipy's conversion, bit for bit, as no two triplets share an entry (else scipy sums them,
+        and its conversion is used every time).
+        """
+        shape = (self.z.size, self.n_state)
+        vals = np.concatenate([blocks.ravel() for *_, blocks in parts])
+        pattern: tuple[IntArray, npt.NDArray[np.integer], npt.NDArray[np.integer]] | None = self.__dict__.get(
+            "_jacobian_pattern"
+        )
+        if pattern is None:
+            trip = [_block_triplets(*part) for part in parts]
+            rows = np.concatenate([t[0] for t in trip])
+            cols = np.concatenate([t[1] for t in trip])
+            probe = sp.csr_matrix((np.arange(rows.size, dtype=np.float64), (rows, cols)), shape=shape)
+            if probe.nnz < rows.size:  # repeated entries: scipy's conversion sums them, every time
+                return sp.csr_matrix((vals, (rows, cols)), shape=shape)
+            pattern = (probe.data.astype(np.int64), probe.indices, probe.indptr)
+            self.__dict__["_jacobian_pattern"] = pattern  # a cache of the frozen value's records
+        order, indices, indptr = pattern
+        jac = sp.csr_matrix((vals[order], indices.copy(), indptr.copy()), shape=shape)
+        jac.has_canonical_format = True
+        return jac
 
     def chi2(self, x: FloatArray) -> float:
         """Return ``sum_i e_i^T I_i e_i`` at state ``x``."""

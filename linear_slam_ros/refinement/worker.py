@@ -21,6 +21,7 @@ group; the parent decides).
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import logging
 import math
@@ -29,7 +30,10 @@ import multiprocessing.queues
 import os
 import queue
 import signal
+import sys
 import time
+import types
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -195,6 +199,26 @@ def _drain(inbox: multiprocessing.queues.Queue[Any], timeout: float) -> list[tup
     return out
 
 
+@contextlib.contextmanager
+def _main_module_hidden() -> Iterator[None]:
+    """Hide the parent's ``__main__`` from ``spawn`` while a child starts.
+
+    ``spawn`` runs the parent's main module again in the child (as ``__mp_main__``) so that
+    objects pickled from it resolve there. Everything the refiner's child is given lives in this
+    package (``serve``, a :class:`SinkSpec` naming its factory by module), so that import is
+    pure start-up cost: the node's or the race's whole module graph (the joiner, the gate and
+    ``scipy.special``, rclpy), 0.2-0.4 s of CPU. With a main module that has neither ``__spec__``
+    nor ``__file__``, ``spawn`` imports none.
+    """
+    main = sys.modules.get("__main__")
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        if main is not None:
+            sys.modules["__main__"] = main
+
+
 class RefineWorker:
     """Owner of the refiner's process (started at construction; module docstring).
 
@@ -241,7 +265,8 @@ class RefineWorker:
             name="linear_slam_refiner",
             daemon=True,
         )
-        self._process.start()
+        with _main_module_hidden():
+            self._process.start()
 
     def wait_ready(self, timeout: float) -> bool:
         """Wait up to ``timeout`` s for the child to be up (imports done, sink built); return whether it is."""

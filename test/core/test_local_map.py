@@ -194,3 +194,26 @@ def test_an_asymmetric_sparse_information_is_refused():
     info[0, 3] = 0.5  # one entry without its mirror
     with pytest.raises(InvalidMapError, match="not symmetric"):
         LocalMap(2, 0, 7, np.array([7, 1]), np.array([POSE, 1], dtype=np.int8), np.zeros(5), info.tocsr(), name="lm")
+
+
+def test_block_diagonal_equals_scipy_s_block_diag_for_runs_of_dense_and_sparse_blocks(rng):
+    """Runs of dense blocks are assembled at once: the same arrays as scipy's block_diag, zeros left out."""
+    blocks: list = []
+    for k in range(40):
+        size = int(rng.integers(1, 7))
+        dense = rng.standard_normal((size, size))
+        dense[rng.random((size, size)) < 0.3] = 0.0  # zeros inside the blocks, whole zero rows too
+        if k % 9 == 0:
+            dense[0] = 0.0
+        blocks.append(sp.csr_matrix(dense) if k % 7 == 3 else dense if k % 5 else dense.T)  # transposed views too
+    base = sp.random(5, 5, density=0.4, random_state=1, format="csr")
+    for given_base in (None, base, base.toarray()):
+        got = block_diagonal(blocks, given_base)
+        parts = ([] if given_base is None else [given_base]) + blocks
+        expected = sp.block_diag([sp.csr_matrix(b) for b in parts], format="csr")
+        expected.eliminate_zeros()
+        expected.sort_indices()
+        np.testing.assert_array_equal(got.indptr, expected.indptr)
+        np.testing.assert_array_equal(got.indices, expected.indices)
+        np.testing.assert_array_equal(got.data, expected.data)
+    assert block_diagonal([]).shape == (0, 0) and block_diagonal([np.zeros((2, 2))]).nnz == 0

@@ -62,3 +62,41 @@ def test_nees_needs_truth_for_every_variable():
     truth.pop((POSE, 4))
     with pytest.raises(InvalidMapError, match="no ground truth for pose 4"):
         nees(joined, truth)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_jacobian_s_kept_pattern_gives_scipy_s_conversion_at_every_state(dim):
+    """The Jacobian's CSR pattern is worked out once per objective; later states only permute values into it."""
+    import scipy.sparse as sp
+
+    from linear_slam_ros.evaluation.objective import _block_triplets
+
+    world = make_world(dim, 16, 20, np.random.default_rng(11))
+    maps = noisy_local_maps(world, np.random.default_rng(12), steps_per_map=4)
+    joined = join_divide_and_conquer(maps)
+    objective = MapObjective.build(joined, maps)
+    rng = np.random.default_rng(13)
+    for k in range(3):  # the first call works the pattern out, the others reuse it
+        x = joined.x + (0.0 if k == 0 else 0.05) * rng.standard_normal(joined.x.size)
+        _, jac = objective.residuals(x, jacobian=True)
+        parts: list = []
+        original = objective._jacobian
+
+        def spy(given, parts=parts, original=original):
+            parts.extend(given)
+            return original(given)
+
+        objective.__dict__["_jacobian"] = spy  # the same blocks, through scipy's triplet conversion
+        try:
+            objective.residuals(x, jacobian=True)
+        finally:
+            del objective.__dict__["_jacobian"]
+        trip = [_block_triplets(*part) for part in parts]
+        reference = sp.csr_matrix(
+            (np.concatenate([t[2] for t in trip]), (np.concatenate([t[0] for t in trip]), np.concatenate([t[1] for t in trip]))),
+            shape=jac.shape,
+        )
+        assert jac.has_canonical_format
+        np.testing.assert_array_equal(jac.indptr, reference.indptr)
+        np.testing.assert_array_equal(jac.indices, reference.indices)
+        np.testing.assert_array_equal(jac.data, reference.data)

@@ -21,7 +21,7 @@ def test_synthetic_bag_holds_the_generated_maps(tmp_path, monkeypatch, name: str
     stream = city.generate(name, seed=2)
     assert city.is_cached(name, 2, tmp_path / "cache")  # the offline CLI can join the same maps
     records = list(read_messages(bag))
-    assert [r.topic for r in records] == ["pose_graph" if as_graph else "local_map"] * len(stream.maps)
+    assert [r.topic for r in records] == ["/pose_graph" if as_graph else "/local_map"] * len(stream.maps)
     for seq, (record, expected) in enumerate(zip(records, stream.maps, strict=True), start=1):
         parts = bag_parts(deserialize(record.raw))
         if as_graph:

@@ -31,6 +31,16 @@ from linear_slam_ros.joining.sequential import SequentialState, sequential_step
 REPO = Path(__file__).resolve().parents[1]
 
 
+class FakeClock:
+    """A clock the test sets by hand (``clock.t = 2.5``), for code that takes a ``clock`` callable (s)."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
 def wait_until(condition: Callable[[], bool], timeout: float = 5.0, poll: float = 0.005) -> bool:
     """Poll ``condition`` until it holds or ``timeout`` s pass; return whether it holds (asked once more at the end)."""
     deadline = time.monotonic() + timeout

@@ -15,7 +15,7 @@ from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.joining.background import MergeWorker
 from linear_slam_ros.joining.divide_conquer import Deferred
 from linear_slam_ros.joining.islands import poses_of
-from support import global_map_of
+from support import FakeClock, global_map_of
 
 
 @pytest.fixture
@@ -136,14 +136,6 @@ def test_a_restored_states_deferred_merges_go_to_the_worker_at_once(maps, tmp_pa
         worker.stop()
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def _joiner(**kw):
     reasons = []
     clock = FakeClock()
@@ -166,7 +158,7 @@ def test_sequence_numbers_start_at_1_and_a_far_first_message_cannot_move_the_str
     assert j.offer(maps[0], 0) == [] and reasons[-1][0] == "seq_out_of_range"
     assert "sequence numbers start at 1" in reasons[-1][1]
     assert j.offer(maps[3], 10**9) == []  # waits, alone
-    clock.now = 100.0
+    clock.t = 100.0
     assert j.expire() == []  # a lone far-ahead submap is never a credible next one
     assert [j.offer(m, s) for s, m in enumerate(maps[:4], start=1)] == [[1], [2], [3], [4]]
     assert j.state.n_joined == 4 and j.state.next_seq == 5
@@ -175,9 +167,9 @@ def test_sequence_numbers_start_at_1_and_a_far_first_message_cannot_move_the_str
 def test_a_node_started_mid_stream_moves_to_it_after_the_timeout(maps):
     j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=2.0)
     assert j.offer(maps[3], 500) == [] and j.offer(maps[4], 501) == []  # two consecutive numbers, far ahead
-    clock.now = 1.0
+    clock.t = 1.0
     assert j.expire() == []
-    clock.now = 2.5
+    clock.t = 2.5
     assert j.expire() == [("", 500), ("", 501)]
     assert "submaps seq 1..499 never arrived or were rejected (no progress for 2.5 s)" in reasons[-1][1]
 
@@ -186,9 +178,9 @@ def test_a_gap_that_cannot_fill_is_skipped_after_the_timeout(maps):
     j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=1.0)
     assert j.offer(maps[0], 1) == [1]
     assert j.offer(maps[2], 3) == []  # 2 never comes (it was undecodable), and few follow
-    clock.now = 0.5
+    clock.t = 0.5
     assert j.expire() == []
-    clock.now = 1.2
+    clock.t = 1.2
     assert j.expire() == [("", 3)]  # 3 starts at pose 6, the map ends at 3: skipped to, it starts an island
     assert [r for r, _ in reasons] == ["gap"] and len(j.state.islands) == 2
 
@@ -197,14 +189,14 @@ def test_after_an_idle_spell_a_gap_is_given_its_full_timeout(maps):
     """The timeout counts from the first submap that waits behind the gap, not from the stream's last join."""
     j, reasons, clock = _joiner(reorder_window=100, reorder_timeout=5.0)
     assert j.offer(maps[0], 1) == [1]
-    clock.now = 60.0  # the robot paused for a minute, then 3 arrives before 2
+    clock.t = 60.0  # the robot paused for a minute, then 3 arrives before 2
     assert j.offer(maps[2], 3) == []
-    clock.now = 60.1
+    clock.t = 60.1
     assert j.expire() == []  # 2 is 0.1 s late, not 60 s
     assert j.offer(maps[1], 2) == [2, 3] and reasons == []
-    clock.now = 70.0
+    clock.t = 70.0
     assert j.offer(maps[4], 5) == []
-    clock.now = 75.5
+    clock.t = 75.5
     assert j.expire() == [("", 5)] and "no progress for 5.5 s" in reasons[-1][1]
 
 

@@ -12,13 +12,7 @@ from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.evaluation.synthetic import make_world, noisy_local_maps
 from linear_slam_ros.joiner.joiner import Joiner, island_map
 from linear_slam_ros.joiner.strategy import JoinMethod
-
-
-class Clock:
-    t = 0.0
-
-    def __call__(self):
-        return self.t
+from support import FakeClock
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +83,7 @@ def test_restore_counts_the_buffered_bytes(maps):
 
 
 def test_a_gap_holds_the_stream_from_the_first_waiting_submap(maps):
-    c = Clock()
+    c = FakeClock()
     j = Joiner(JoinMethod.ONLINE_DC, clock=c, reorder_timeout=5.0)
     j.offer(maps[0], 1)
     c.t = 1.0

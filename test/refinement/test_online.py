@@ -28,6 +28,7 @@ from linear_slam_ros.refinement.online import (
     refine_offline,
 )
 from linear_slam_ros.refinement.worker import SinkSpec
+from support import FakeClock
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -35,14 +36,6 @@ FloatArray = npt.NDArray[np.float64]
 @pytest.fixture(scope="module")
 def city() -> tuple[LocalMap, ...]:
     return read_dataset("synthetic:city2d-300@3").maps
-
-
-class FakeClock:
-    def __init__(self) -> None:
-        self.t = 0.0
-
-    def __call__(self) -> float:
-        return self.t
 
 
 def test_streamed_refinement_equals_offline_refine(city: tuple[LocalMap, ...]) -> None:

@@ -15,13 +15,7 @@ from linear_slam_ros.joiner.config import OutputFrame
 from linear_slam_ros.joiner.joiner import Joiner, global_result
 from linear_slam_ros.joiner.strategy import JoinMethod
 from linear_slam_ros.refinement.online import LinearEstimate, OnlineRefiner, RefinerConfig, Submission, refine_offline
-
-
-class Clock:
-    t = 0.0
-
-    def __call__(self):
-        return self.t
+from support import FakeClock
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +25,7 @@ def maps():
 
 
 def _absorbed(maps, n, config=None, clock=None):
-    r = OnlineRefiner(config or RefinerConfig(), clock or Clock())
+    r = OnlineRefiner(config or RefinerConfig(), clock or FakeClock())
     for seq, m in enumerate(maps[:n], start=1):
         r.submit(Submission(seq, m, 0.0))
     r.absorb()
@@ -67,7 +61,7 @@ def test_a_round_over_new_submaps_is_not_reported_converged_before_it_runs(maps)
 
 
 def test_seconds_until_due_is_never_negative(maps):
-    c = Clock()
+    c = FakeClock()
     r = OnlineRefiner(RefinerConfig(idle_s=0.05), c)
     r.submit(Submission(1, maps[0], 0.0))
     c.t = 10.0
@@ -75,7 +69,7 @@ def test_seconds_until_due_is_never_negative(maps):
 
 
 def test_queued_submaps_are_due_mid_round_once_the_stream_is_idle(maps):
-    c = Clock()
+    c = FakeClock()
     r = _absorbed(maps, 10, RefinerConfig(idle_s=0.05, growth=0.25), c)
     r.iterate()
     assert not r.converged
@@ -86,7 +80,7 @@ def test_queued_submaps_are_due_mid_round_once_the_stream_is_idle(maps):
 
 
 def test_queued_is_not_idle(maps):
-    c = Clock()
+    c = FakeClock()
     r = OnlineRefiner(RefinerConfig(idle_s=0.05), c)
     r.submit(Submission(1, maps[0], 0.0))
     c.t = 1.0
@@ -94,7 +88,7 @@ def test_queued_is_not_idle(maps):
 
 
 def test_settled_waits_for_idle_s_when_settle_s_is_shorter(maps):
-    c = Clock()
+    c = FakeClock()
     r = OnlineRefiner(RefinerConfig(idle_s=1.0, settle_s=0.1), c)
     r.submit(Submission(1, maps[0], 0.0))
     r.absorb()

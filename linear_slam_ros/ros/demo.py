@@ -44,7 +44,7 @@ from linear_slam_ros.joining.islands import maps_within
 from linear_slam_ros.ros.bag_from_dataset import load_source, make_bag
 from linear_slam_ros.ros.bagio import read_messages, write_messages
 from linear_slam_ros.ros.player import play
-from linear_slam_ros.ros.process import loopback_env, stop_process
+from linear_slam_ros.ros.process import loopback_env, share_directory, stop_process
 from linear_slam_ros.ros.qos import latched_qos
 from linear_slam_ros.ros.sim_frontend import Simulation
 from linear_slam_ros.ros.spin import LatestMessage, node_session, spin_until, wait_for_diagnostics
@@ -59,17 +59,10 @@ def default_bag() -> Path:
     """Return the bag ``demo`` replays by default: :data:`DEFAULT_DATASET` in the current folder (a
     checkout), else the copy installed in the package's share folder (``ros2 run linear_slam_ros demo``
     from anywhere), else :data:`DEFAULT_DATASET` (which then fails naming it)."""
-    if DEFAULT_DATASET.exists():
+    share = share_directory()
+    if DEFAULT_DATASET.exists() or share is None or not (share / DEFAULT_DATASET / "metadata.yaml").is_file():
         return DEFAULT_DATASET
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        installed = Path(get_package_share_directory("linear_slam_ros")) / DEFAULT_DATASET
-        if (installed / "metadata.yaml").is_file():
-            return installed
-    except Exception:  # not installed with colcon
-        pass
-    return DEFAULT_DATASET
+    return share / DEFAULT_DATASET
 
 
 def joiner_command(executable: str = "joiner", module: str = "linear_slam_ros.ros.node") -> list[str]:

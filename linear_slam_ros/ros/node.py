@@ -57,6 +57,7 @@ from linear_slam_ros.ros.journal import JournalError
 from linear_slam_ros.ros.periodic import PeriodicTask, PeriodicThread
 from linear_slam_ros.ros.persistence import StateStore
 from linear_slam_ros.ros.pose_output import PoseTracker
+from linear_slam_ros.ros.process import share_directory
 from linear_slam_ros.ros.qos import PROFILE_VARIABLES, inbound_dds_profile, inbound_qos, latched_qos
 from linear_slam_ros.ros.raw_publish import publish_serialized
 from linear_slam_ros.ros.spin import print_usage_if_asked
@@ -1079,18 +1080,6 @@ def _robot_seq(key: Any) -> tuple[str, int]:
     return key if isinstance(key, tuple) else ("", key)
 
 
-def _share_directory() -> Path | None:
-    """The package's installed share directory (``None`` when it runs from the source tree)."""
-    try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-    except ImportError:  # pragma: no cover - ament_index comes with rclpy
-        return None
-    try:
-        return Path(get_package_share_directory("linear_slam_ros"))
-    except PackageNotFoundError:
-        return None
-
-
 def status_header(node: Node) -> Any:
     """Return a header stamped with the node's clock."""
     from std_msgs.msg import Header
@@ -1111,7 +1100,7 @@ def main(args: list[str] | None = None) -> None:
     """Start the joiner; Ctrl-C stops it cleanly; an invalid parameter exits with code 2; ``--help`` lists the parameters."""
     if print_usage_if_asked(args, NODE_NAME, _usage()):
         return
-    profile = inbound_dds_profile(os.environ, _share_directory())
+    profile = inbound_dds_profile(os.environ, share_directory())
     if profile is not None:  # read by FastDDS when rclpy creates the participant
         os.environ[PROFILE_VARIABLES[0]] = str(profile)
     rclpy.init(args=args)

@@ -1,4 +1,5 @@
-"""Child processes of the ROS tools and tests: a loopback-only environment, and stopping them.
+"""Child processes of the ROS tools and tests: a loopback-only environment, stopping them, and the
+package's installed share directory.
 
 Imports neither rclpy nor rosbags, so it can set the environment up before rclpy is imported.
 """
@@ -9,6 +10,7 @@ import os
 import signal
 import subprocess
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 DEFAULT_DOMAIN_ID = 42
@@ -48,3 +50,15 @@ def stop_process(process: subprocess.Popen[Any], timeout_s: float = 10.0) -> int
             process.kill()
             process.wait()
     return int(process.returncode)
+
+
+def share_directory() -> Path | None:
+    """The package's installed share directory (``None`` when it runs from the source tree)."""
+    try:
+        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
+    except ImportError:  # pragma: no cover - ament_index comes with rclpy
+        return None
+    try:
+        return Path(get_package_share_directory("linear_slam_ros"))
+    except PackageNotFoundError:
+        return None

@@ -261,7 +261,7 @@ def _convert(f: dataclasses.Field[Any], value: Any) -> Any:
     if isinstance(default, float):
         value = float(value)
     if spec.bounds is not None and not spec.bounds[0] <= value <= spec.bounds[1]:
-        raise ConfigError(f"parameter {f.name}={value!r} is outside its range [{spec.bounds[0]:g}, {spec.bounds[1]:g}]")
+        raise ConfigError(f"parameter {f.name}={value!r} is outside its range [{spec.bounds[0]:.12g}, {spec.bounds[1]:.12g}]")
     return value
 
 

@@ -22,6 +22,7 @@ group; the parent decides).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import importlib
 import logging
 import math
@@ -63,6 +64,9 @@ class Sink(Protocol):
 
     def close(self, cpu_seconds: float) -> None:
         """Release what the sink holds; the child ends next."""
+
+    def configure(self, settings: dict[str, Any]) -> None:
+        """Change some of the factory's keyword arguments (:meth:`RefineWorker.configure_sink`)."""
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,9 @@ class _QueueSink:
         self.out.close()
         self.out.join_thread()
 
+    def configure(self, settings: dict[str, Any]) -> None:
+        """Nothing to change: the refined maps go back as they are."""
+
 
 def queue_sink(out: multiprocessing.queues.Queue[Published], information: bool = False) -> Sink:
     """A sink that puts :class:`Published` values on ``out`` (a queue of the worker's context)."""
@@ -165,6 +172,11 @@ def serve(
                     refiner.submit(payload)
                 elif kind == "linear":
                     refiner.linear(payload)
+                elif kind == "sink":
+                    try:
+                        sink.configure(payload)
+                    except Exception as exc:  # noqa: BLE001 - a setting the sink refuses does not end the refiner
+                        logger.warning("refiner: the sink refused %s: %s: %s", payload, type(exc).__name__, exc)
             if not running:
                 break
             if not messages and os.getppid() != parent:
@@ -281,6 +293,13 @@ class RefineWorker:
         """Send the newest linear estimate to the child."""
         if self._inbox is not None:
             self._inbox.put(("linear", estimate))
+
+    def configure_sink(self, **settings: Any) -> None:
+        """Change some of the sink factory's keyword arguments: the child's sink takes them at once (its
+        ``configure``), and a child started later (:meth:`reset`) is built with them."""
+        self.sink = dataclasses.replace(self.sink, kwargs={**self.sink.kwargs, **settings})
+        if self._inbox is not None:
+            self._inbox.put(("sink", settings))
 
     def stop(self, timeout: float = 10.0) -> int | None:
         """Ask the child to end after its current step, wait, terminate it past ``timeout`` s (idempotent).

@@ -10,6 +10,7 @@ import dataclasses
 import enum
 import gc
 import logging
+import math
 import os
 import sys
 import threading
@@ -287,12 +288,24 @@ class JoinerNode(Node):
             self.set_descriptor(decl.name, final)
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        # rclpy's own parameters (use_sim_time, ...) are not the joiner's: rclpy handles them
+        fields = {f.name for f in dataclasses.fields(JoinerConfig)}
+        mine = {p.name: p.value for p in params if p.name in fields}
+        if not mine:
+            return SetParametersResult(successful=True)
         try:
-            changed = JoinerConfig.from_mapping({**self._config_values(), **{p.name: p.value for p in params}})
+            changed = JoinerConfig.from_mapping({**self._config_values(), **mine})
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
         self.config = changed
-        names = {p.name for p in params}  # publish_rate and summary_period: read by the output thread at each period
+        names = set(mine)
+        if names & {"output_frame", "map_frame", "ellipse_max_state"}:  # the latched outputs in the new frame now,
+            with self._lock:  # not only once another submap arrives (after a bag has ended: never)
+                self._version += 1
+            if self.refiner is not None and "output_frame" in names:  # global_map_refined follows it
+                self.refiner.configure_sink(output_frame=changed.output_frame.value)
+        if names & {"output_frame", "map_frame", "ellipse_max_state", "publish_rate", "summary_period"}:
+            self._outputs.wake()  # a shorter period applies now, not once the old one has run out
         if names & {"reorder_window", "reorder_timeout", "reorder_max_bytes"}:  # every buffer within them at once
             self._join_and_publish(lambda: self.joiner.set_reorder(
                 changed.reorder_window, changed.reorder_timeout, changed.reorder_max_bytes
@@ -312,7 +325,7 @@ class JoinerNode(Node):
 
     def _receiver(self, topic: str, robot: str) -> _Receiver:
         """Return the subscription callback of ``robot``'s ``topic`` (its ``subscription`` is set once created)."""
-        return _Receiver(self._receive, self._flush_poses, topic, robot)
+        return _Receiver(self._receive, self._flush_poses, topic, robot, self.context.ok)
 
     def _receive(self, topic: str, raw: bytes, robot: str = "") -> None:
         """Decode an inbound message of ``robot``, journal it (with ``state_dir``), then offer it to the joiner."""
@@ -712,6 +725,9 @@ class JoinerNode(Node):
 
     def _flush_poses(self) -> None:
         """Publish the poses held back (the callback's queue is empty, or it took :data:`DRAIN_MAX`)."""
+        if not self.context.ok():  # shutting down: nothing can be published any more
+            self._pending_pose.clear()
+            return
         while self._pending_pose:
             robot, (state, joined, _) = self._pending_pose.popitem()
             self._publish_pose(state, joined, robot)
@@ -837,8 +853,9 @@ class JoinerNode(Node):
         stats.update(self.node_stats())
         try:
             self._publish(state, stats)
-        except LinearSlamError as exc:  # pragma: no cover - outputs of a valid state
-            self.get_logger().error(f"could not publish the global map: {exc}")
+        except LinearSlamError as exc:  # outputs of a valid state: the context shut down under it
+            log = self.get_logger().error if self.context.ok() else self.get_logger().debug
+            log(f"could not publish the global map: {exc}")
         self._published_version = version
         # Outputs of a large map cost CPU the merges need: keep publishing under PUBLISH_DUTY of
         # the time, whatever publish_rate asks for.
@@ -983,7 +1000,7 @@ class JoinerNode(Node):
             period = self.config.summary_period
             status.message = f"{recent} submaps rejected in the last {period:g} s ({self._diag_rejected} in all)"
         stats.update(self.node_stats())
-        status.values = [KeyValue(key=k, value=f"{v:g}") for k, v in stats.items()]
+        status.values = [KeyValue(key=k, value=diagnostic_value(v)) for k, v in stats.items()]
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))
         status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
         status.values.append(KeyValue(key="n_gated", value=str(len(self.joiner.gated))))
@@ -996,11 +1013,11 @@ class JoinerNode(Node):
                 f"variables {list(last.variables)}" + (" (whole submap)" if last.rejected else ""),
             ))
         for what, seconds in self._persist_seconds.items():
-            status.values.append(KeyValue(key=f"{what}_seconds_total", value=f"{seconds:g}"))
+            status.values.append(KeyValue(key=f"{what}_seconds_total", value=diagnostic_value(seconds)))
         for what, seconds in self._cpu_seconds.items():
-            status.values.append(KeyValue(key=f"{what}_cpu_seconds_total", value=f"{seconds:g}"))
+            status.values.append(KeyValue(key=f"{what}_cpu_seconds_total", value=diagnostic_value(seconds)))
         # the exact pose covariance's cost, on the output thread (README, pose)
-        status.values.append(KeyValue(key="pose_cov_exact_cpu_seconds_total", value=f"{self._poses.exact_seconds:g}"))
+        status.values.append(KeyValue(key="pose_cov_exact_cpu_seconds_total", value=diagnostic_value(self._poses.exact_seconds)))
         if self._tf is not None:  # transforms not sent: a stamp already sent, no odometry at the stamp (README, TF)
             status.values.append(KeyValue(key="tf_sent", value=str(self._tf.n_sent)))
             status.values.append(KeyValue(key="tf_repeated_stamp", value=str(self._tf.n_repeated)))
@@ -1016,14 +1033,19 @@ class _Receiver:
     publishes what the submaps' joins held back (:data:`POSE_COALESCE_S`).
     """
 
-    def __init__(self, receive: Callable[[str, bytes, str], None], flush: Callable[[], None], topic: str, robot: str) -> None:
-        self._receive, self._flush, self.topic, self.robot = receive, flush, topic, robot
+    def __init__(
+        self, receive: Callable[[str, bytes, str], None], flush: Callable[[], None], topic: str, robot: str,
+        ok: Callable[[], bool],
+    ) -> None:
+        self._receive, self._flush, self.topic, self.robot, self._ok = receive, flush, topic, robot, ok
         self.subscription: Subscription | None = None
 
     def __call__(self, raw: bytes) -> None:
         try:
             self._receive(self.topic, raw, self.robot)
             for _ in range(DRAIN_MAX):
+                if not self._ok():  # shut down (SIGINT, SIGTERM): the rest of the queue is not taken
+                    return
                 queued = take_queued(self.subscription)
                 if queued is None:
                     return
@@ -1068,6 +1090,14 @@ def _decode(topic: str, raw: bytes, limits: InputLimits) -> tuple[LocalMap, int,
         return chunk_to_local_map(chunk.graph, limits), chunk.seq, chunk.stamp
     decoded = decode_map(*parts(msg), limits=limits)
     return submap_of(decoded), decoded.seq, decoded.stamp
+
+
+def diagnostic_value(value: float) -> str:
+    """A statistic as ``/diagnostics`` shows it: counts in full (``%g`` rounded 1234570 to 1.23457e+06), other
+    figures to 10 significant digits."""
+    if math.isfinite(value) and value == int(value) and abs(value) < 2**53:
+        return str(int(value))
+    return f"{value:.10g}"
 
 
 def _key(robot: str, seq: int) -> Any:
@@ -1120,6 +1150,11 @@ def main(args: list[str] | None = None) -> None:
         sys.exit(2)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # SIGINT / SIGTERM shut the context down while a callback was still draining its queue: its next
+        # publication raises rclpy's RCLError ("publisher's context is invalid"), a normal stop all the same
+        if node is None or node.context.ok():
+            raise
     finally:
         if node is not None:
             node.destroy_node()

@@ -13,11 +13,13 @@ publication; cpu: the refiner process's CPU time so far).
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 import rclpy
 from std_msgs.msg import Float64MultiArray
 
+from linear_slam_ros.core.errors import ConfigError
 from linear_slam_ros.core.frames import change_frame
 from linear_slam_ros.core.local_map import LocalMap
 from linear_slam_ros.refinement.online import RefinedMap
@@ -39,15 +41,35 @@ class RosSink:
         self.node = rclpy.create_node(node_name)
         self.pub = self.node.create_publisher(Float64MultiArray, topic, latched_qos())
         self.output_frame = output_frame
+        self._last: tuple[RefinedMap, float, float] | None = None  # the newest map published, its CPU and lag (s)
         publish_serialized(self.pub, to_cdr(encode_empty_global(LocalMap, 0, Stamp(), {})))  # no older refined map stays latched
 
     def publish(self, refined: RefinedMap, cpu_seconds: float) -> None:
         """Encode and publish one refined map (module docstring)."""
+        self._last = (refined, cpu_seconds, time.monotonic() - refined.last_arrival)
+        self._send(*self._last)
+
+    def configure(self, settings: dict[str, Any]) -> None:
+        """Take the joiner's new ``output_frame`` and republish the newest refined map in it (the topic is latched:
+        an idle refiner publishes nothing more).
+
+        Raises:
+            ConfigError: a setting other than ``output_frame``.
+        """
+        unknown = sorted(set(settings) - {"output_frame"})
+        if unknown:
+            raise ConfigError(f"the refined map's publisher has no setting {unknown[0]!r}")
+        if settings.get("output_frame", self.output_frame) == self.output_frame:
+            return
+        self.output_frame = str(settings["output_frame"])
+        if self._last is not None:
+            self._send(*self._last)
+
+    def _send(self, refined: RefinedMap, cpu_seconds: float, lag: float) -> None:
         m = refined.map
         if self.output_frame == "end_pose" and m.end_id is not None and m.end_id != m.frame_id:
             m = change_frame(m, m.end_id)
         encoded = encode_global(m, refined.last_seq, Stamp(*refined.stamp), refined.n_submaps, {"n_joined": refined.n_submaps})
-        lag = time.monotonic() - refined.last_arrival
         values = [refined.chi2, refined.iterations, float(refined.converged), lag, cpu_seconds, refined.initial_chi2]
         publish_serialized(self.pub, to_cdr(with_refine_segment(encoded, values)))
 

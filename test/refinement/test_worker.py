@@ -70,6 +70,20 @@ def test_worker_reaches_the_offline_optimum_then_stops_cleanly_on_reset_and_stop
     assert worker.stop() is None  # idempotent
 
 
+def test_new_sink_settings_reach_the_running_child_and_the_next_one(city: tuple[LocalMap, ...]) -> None:
+    import multiprocessing
+
+    results = multiprocessing.get_context("spawn").Queue()
+    worker = RefineWorker(SinkSpec("linear_slam_ros.refinement.worker:queue_sink", {"out": results}))
+    try:
+        worker.configure_sink(information=True)  # the queue sink takes it and changes nothing
+        assert worker.sink.kwargs == {"out": results, "information": True}  # a reset builds the child's sink with it
+        worker.submit(Submission(1, city[0], time.monotonic()))
+        assert _wait_for(results, lambda p: p.refined is not None and p.refined.converged)  # the child goes on
+    finally:
+        assert worker.stop() == 0
+
+
 def test_stop_interrupts_a_round_in_progress(city: tuple[LocalMap, ...]) -> None:
     import multiprocessing
 

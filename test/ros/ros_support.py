@@ -57,6 +57,24 @@ def call_trigger(node, name: str, timeout_s: float = 30.0, attempts: int = 3):  
         node.destroy_client(client)
 
 
+def set_parameter(node, target: str, name: str, value: str, timeout_s: float = 30.0):  # type: ignore[no-untyped-def]
+    """Set the string parameter ``name`` of the node ``target`` (its full name) as ``ros2 param set`` does; return the result."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    client = node.create_client(SetParameters, f"{target}/set_parameters")
+    try:
+        assert client.wait_for_service(timeout_sec=timeout_s), f"{target}/set_parameters did not appear"
+        request = SetParameters.Request(parameters=[
+            Parameter(name=name, value=ParameterValue(type=ParameterType.PARAMETER_STRING, string_value=value)),
+        ])
+        future = client.call_async(request)
+        assert spin_until(node, future.done, timeout_s, 0.05), f"{target}/set_parameters did not answer"
+        return future.result().results[0]
+    finally:
+        node.destroy_client(client)
+
+
 def dataset_bag(name: str) -> Path:
     """Return the bag of benchmark dataset ``name`` (10 Hz stamps): the committed one (bags/README.md), else
     ``bags/<name>``, made from the dataset when it is not there yet."""

@@ -18,8 +18,11 @@ from linear_slam_ros.ros.node import JoinerNode
 
 
 def _fake_node(config: JoinerConfig) -> SimpleNamespace:
-    """What ``JoinerNode._on_set_parameters`` uses of the node: its configuration, joiner and lock."""
-    fake = SimpleNamespace(config=config, joiner=Joiner(JoinMethod.ONLINE_DC), _lock=threading.Lock())
+    """What ``JoinerNode._on_set_parameters`` uses of the node: its configuration, joiner, lock, output version,
+    refiner and output thread (``woken`` counts its wake-ups)."""
+    fake = SimpleNamespace(config=config, joiner=Joiner(JoinMethod.ONLINE_DC), _lock=threading.Lock(), _version=0,
+                           refiner=None, woken=[])
+    fake._outputs = SimpleNamespace(wake=lambda: fake.woken.append(True))
     fake._config_values = lambda: JoinerNode._config_values(fake)  # type: ignore[arg-type]
     fake._join_and_publish = lambda join: JoinerNode._join_and_publish(fake, join)  # type: ignore[arg-type]
     return fake
@@ -40,6 +43,33 @@ def test_a_gate_probability_out_of_range_is_refused_and_changes_nothing():
     result = JoinerNode._on_set_parameters(fake, [Parameter("gate_probability", value=1.5)])  # type: ignore[arg-type]
     assert not result.successful and "gate_probability=1.5 is outside its range" in result.reason
     assert fake.joiner.gate_probability is None and fake.config.gate_probability == 0.0
+
+
+def test_the_largest_gate_probability_is_named_in_full_when_one_is_refused():
+    """``:g`` printed the bound 0.999999999 as 1, and refused 1.0 as "outside its range [0, 1]"."""
+    fake = _fake_node(JoinerConfig())
+    result = JoinerNode._on_set_parameters(fake, [Parameter("gate_probability", value=1.0)])  # type: ignore[arg-type]
+    assert not result.successful and "outside its range [0, 0.999999999]" in result.reason, result.reason
+
+
+@pytest.mark.parametrize(("name", "value"), [("output_frame", "first_pose"), ("map_frame", "odom"), ("ellipse_max_state", 10)])
+def test_a_new_output_frame_is_published_at_once_not_with_the_next_submap(name, value):
+    """After a bag has ended no submap comes: the latched outputs kept the old frame for good."""
+    fake = _fake_node(JoinerConfig())
+    sent: list[dict[str, object]] = []
+    fake.refiner = SimpleNamespace(configure_sink=lambda **settings: sent.append(settings))
+    result = JoinerNode._on_set_parameters(fake, [Parameter(name, value=value)])  # type: ignore[arg-type]
+    assert result.successful and getattr(fake.config, name) == value
+    assert fake._version == 1 and fake.woken == [True]  # the publisher compares the version: it republishes
+    assert sent == ([{"output_frame": "first_pose"}] if name == "output_frame" else [])  # global_map_refined follows
+
+
+@pytest.mark.parametrize(("name", "value"), [("publish_rate", 10.0), ("summary_period", 1.0)])
+def test_a_shorter_output_period_applies_at_once(name, value):
+    """The output thread had fixed the next run at the old period: 20 s at publish_rate 0.05, up to an hour for a summary."""
+    fake = _fake_node(JoinerConfig())
+    result = JoinerNode._on_set_parameters(fake, [Parameter(name, value=value)])  # type: ignore[arg-type]
+    assert result.successful and fake.woken == [True] and fake._version == 0  # nothing new to publish
 
 
 def test_reorder_settings_reach_the_joiner():
@@ -63,6 +93,9 @@ def test_every_parameter_has_a_value_that_the_parameter_services_can_answer(rclp
         robots_param = joiner.get_parameter("robots")
         assert robots_param.type_ == Parameter.Type.STRING_ARRAY and robots_param.value == (robots or [])
         assert joiner.describe_parameter("robots").read_only
+        # rclpy's own parameters are rclpy's: use_sim_time was refused as "unknown parameter" at run time
+        assert joiner.set_parameters([Parameter("use_sim_time", value=True)])[0].successful
+        assert joiner.get_parameter("use_sim_time").value is True
         refused = joiner.set_parameters([Parameter("robots", Parameter.Type.STRING_ARRAY, ["c"])])[0]
         assert not refused.successful and "read-only" in refused.reason, refused
         assert list(joiner.config.robots) == (robots or [])
@@ -135,6 +168,10 @@ def test_diagnostics_warn_while_submaps_are_rejected_and_are_ok_again_after_a_qu
             (DiagnosticStatus.WARN, "1 submaps rejected in the last 5 s (2 in all)"),
         ]
         assert {v.key: v.value for v in sent[1].status[0].values}["n_rejected"] == "1"  # the total stays
+        monkeypatch.setattr(joiner.joiner, "stats", lambda: {"n_joined": 1234570.0, "n_rejected": 2e6, "last_join_ms": 0.1234567})
+        joiner._on_summary_timer()
+        values = {v.key: v.value for v in sent[-1].status[0].values}  # counts in full (%g: 1.23457e+06, 2e+06)
+        assert (values["n_joined"], values["n_rejected"], values["last_join_ms"]) == ("1234570", "2000000", "0.1234567")
     finally:
         joiner.destroy_node()
 

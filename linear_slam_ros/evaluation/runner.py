@@ -101,7 +101,8 @@ def run_joiner(
 
     The maps get the sequence numbers that follow the saved state's (1, 2, ... from scratch), so
     the saved result can be continued by the node or by another run; ``seqs`` gives each map's
-    number in its robot's stream instead (``robots``: each map's robot, ``""`` for one robot;
+    number in its robot's stream instead (``robots``: each map's robot, ``""`` for one robot; named robots
+    first appear in their slot order, :func:`~linear_slam_ros.joiner.robots.qualify`, which the state records;
     after a saved state, each robot's first map takes the number that follows the state's and
     the others keep their distance to it); numbers that are skipped are lost submaps, and the
     streams are complete: every gap is skipped at the end (:meth:`Joiner.flush`) and the maps
@@ -124,7 +125,9 @@ def run_joiner(
     """
     if not maps:
         raise InvalidMapError("no local maps to join")
-    joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability, hold_closures=hold_closures)
+    named = tuple(dict.fromkeys(r for r in robots if r)) if robots else ()  # in slot order (robots' first maps come in it)
+    joiner = Joiner(JoinMethod(method), MapType(map_type), gate_probability=gate_probability, hold_closures=hold_closures,
+                    robots=named)
     reasons: list[str] = []
     joiner.on_reject = lambda reason, message: None if reason in ("gated", "gap") else reasons.append(message)
     if initial is not None:

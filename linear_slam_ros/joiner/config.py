@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import functools
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -46,15 +47,20 @@ class ParamSpec:
         description: one line for ``ros2 param describe`` and the README table.
         read_only: fixed at start-up.
         bounds: inclusive numeric range, or ``None``.
+        path: a file or folder name: a leading ``~`` is expanded to the user's home (no shell does it for a
+            parameter file or ``-p``, and the journal would otherwise land in a folder named ``~``).
     """
 
     description: str
     read_only: bool = False
     bounds: tuple[float, float] | None = None
+    path: bool = False
 
 
-def _param(default: Any, description: str, read_only: bool = False, bounds: tuple[float, float] | None = None) -> Any:
-    return dataclasses.field(default=default, metadata={"param": ParamSpec(description, read_only, bounds)})
+def _param(
+    default: Any, description: str, read_only: bool = False, bounds: tuple[float, float] | None = None, path: bool = False,
+) -> Any:
+    return dataclasses.field(default=default, metadata={"param": ParamSpec(description, read_only, bounds, path)})
 
 
 @dataclass(frozen=True)
@@ -101,23 +107,23 @@ class JoinerConfig:
     )
     timing_file: str = _param(
         "", "CSV written at shutdown with each joined submap's arrival time, join time and pose/global_map freshness "
-        "(for benchmarks); empty: none", read_only=True,
+        "(for benchmarks); empty: none", read_only=True, path=True,
     )
     summary_period: float = _param(5.0, "seconds between info-level summary lines and /diagnostics", bounds=(0.1, 3600.0))
     save_directory: str = _param(
-        "saved_map", "folder where ~/save_map writes poses.txt, features.txt, a bag and the exact state (state.npz)",
+        "saved_map", "folder where ~/save_map writes poses.txt, features.txt, a bag and the exact state (state.npz)", path=True,
     )
     state_dir: str = _param(
         "", "folder of the journal and snapshots that survive a crash (resumed at start-up); empty: no persistence",
-        read_only=True,
+        read_only=True, path=True,
     )
     snapshot_period: int = _param(
         1000, "joined submaps between snapshots of the exact state in state_dir", bounds=(1, 1_000_000),
     )
-    load_path: str = _param("", "state file (state.npz) that ~/load_map loads")
+    load_path: str = _param("", "state file (state.npz) that ~/load_map loads", path=True)
     initial_map: str = _param(
         "", "state file loaded at start-up, to continue mapping on it (ignored when state_dir holds a state)",
-        read_only=True,
+        read_only=True, path=True,
     )
     gate_probability: float = _param(
         0.0,
@@ -260,6 +266,8 @@ def _convert(f: dataclasses.Field[Any], value: Any) -> Any:
         raise ConfigError(f"parameter {f.name}={value!r} must be of type {type(default).__name__}")
     if isinstance(default, float):
         value = float(value)
+    if spec.path:
+        value = os.path.expanduser(value)
     if spec.bounds is not None and not spec.bounds[0] <= value <= spec.bounds[1]:
         raise ConfigError(f"parameter {f.name}={value!r} is outside its range [{spec.bounds[0]:.12g}, {spec.bounds[1]:.12g}]")
     return value

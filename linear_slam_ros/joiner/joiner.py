@@ -69,6 +69,10 @@ class JoinerState:
             (:func:`hold_step`; the joiner sets it, with the gate on by default).
         held: the forward loop closures held back, in arrival order
             (:class:`~linear_slam_ros.joining.hold.HeldClosure`).
+        robots: the robot namespaces in slot order, whose pose ids the map holds
+            (:func:`~linear_slam_ros.joiner.robots.qualify`: robot k's pose i is k · 2³² + i); a
+            restore under a list that gives a robot another slot is refused (:meth:`Joiner.check_restorable`).
+            ``()``: one robot, or not recorded (a state file of format 7 or older).
     """
 
     method: JoinMethod
@@ -82,6 +86,7 @@ class JoinerState:
     relabels: Relabels = field(default_factory=Relabels)
     hold_closures: bool = False
     held: tuple[HeldClosure, ...] = ()
+    robots: tuple[str, ...] = ()
 
     @property
     def strategy(self) -> AnyStrategy:
@@ -221,7 +226,10 @@ def _linked(
     chains = link_islands(chains, target, submap, strategy.result, CACHE, holds)
     if target == len(state.chains) or labels != [c.island for c in chains]:  # which chains are frozen changed
         active = {s.chain for s in streams if s.robot != robot and s.chain >= 0} | {target}
-        chains, where = collapse_frozen(chains, active, strategy.seed, strategy.result, CACHE)
+        def seed(joined: Any, n_submaps: int) -> Any:  # deferring as every other chain does (Joiner._scheduled)
+            return strategy.defer(strategy.seed(joined, n_submaps), state.defer_above)
+
+        chains, where = collapse_frozen(chains, active, seed, strategy.result, CACHE)
         target = where[target]
         streams = tuple(replace(s, chain=where[s.chain]) if s.chain >= 0 else s for s in streams)
     return chains, streams, target
@@ -331,8 +339,12 @@ class GateRecord:
         variables: ids of the variables split off (all common variables' worst ones when gated whole).
         kinds: their kinds (0 pose, 1 feature).
         nis: NIS of all common variables before the decision; ``dof``: their scalars.
-        threshold: ``chi2.ppf(gate_probability, dof)``.
+        threshold: the threshold of that NIS (``chi2.ppf(gate_probability, dof)`` times the variance factor).
         rejected: the whole submap was gated (else only ``variables`` were, and the rest joined).
+        variable_nis: each of ``variables``' own conditional NIS (when it was split off; gated whole: as first
+            tested); a submap is gated when its NIS or one of these passes its threshold.
+        variable_thresholds: each one's per-variable threshold (Šidák probability, its size, the variance factor).
+        robot: the submap's robot (``""``: the single robot).
     """
 
     submap: int
@@ -343,11 +355,29 @@ class GateRecord:
     dof: int
     threshold: float
     rejected: bool
+    variable_nis: tuple[float, ...] = ()
+    variable_thresholds: tuple[float, ...] = ()
+    robot: str = ""
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-ready: ``{"submap", "name", "variables", "kinds", "nis", "dof", "threshold", "rejected"}``."""
-        return {"submap": self.submap, "name": self.name, "variables": list(self.variables), "kinds": list(self.kinds),
-                "nis": self.nis, "dof": self.dof, "threshold": self.threshold, "rejected": self.rejected}
+        """JSON-ready: ``{"submap", "robot", "name", "variables", "kinds", "nis", "dof", "threshold", "rejected",
+        "variable_nis", "variable_thresholds"}``."""
+        return {"submap": self.submap, "robot": self.robot, "name": self.name, "variables": list(self.variables),
+                "kinds": list(self.kinds), "nis": self.nis, "dof": self.dof, "threshold": self.threshold,
+                "rejected": self.rejected, "variable_nis": list(self.variable_nis),
+                "variable_thresholds": list(self.variable_thresholds)}
+
+    def describe(self) -> str:
+        """One line saying which test failed: ``seq 17: feature 34 NIS 64.4 > 45.5 (2 dof); submap NIS 105.6 <= 154.5
+        (60 dof)``, then ``(whole submap)`` when it was gated whole."""
+        parts = [
+            f"{'pose' if kind == POSE else 'feature'} {var} NIS {nis:.1f} {'>' if nis > limit else '<='} {limit:.1f}"
+            for var, kind, nis, limit in zip(self.variables, self.kinds, self.variable_nis, self.variable_thresholds,
+                                             strict=False)
+        ]
+        whole = f"submap NIS {self.nis:.1f} {'>' if self.nis > self.threshold else '<='} {self.threshold:.1f} ({self.dof} dof)"
+        who = f"robot {self.robot} seq {self.submap}" if self.robot else f"seq {self.submap}"
+        return f"{who}: " + "; ".join([*parts, whole]) + (" (whole submap)" if self.rejected else "")
 
 
 @dataclass(frozen=True)
@@ -611,6 +641,9 @@ class Joiner:
         max_held: at most this many closures wait (a closure is about 1 KB); beyond it the oldest
             is dropped and counted under ``held_closure`` (a front-end closing on poses its robot
             never reaches cannot grow the state without bound).
+        robots: the robot namespaces in slot order when the submaps' pose ids are qualified
+            (:func:`~linear_slam_ros.joiner.robots.qualify`), recorded in the state
+            (:attr:`JoinerState.robots`); ``()``: one robot.
         gated: every gate decision that kept something out of the map, in order.
         reinitialised: each feature the gate re-initialised (:mod:`~linear_slam_ros.joining.reinit`), in order.
         state: the current state (:meth:`restore` a saved one).
@@ -635,6 +668,7 @@ class Joiner:
     gate_probability: float | None = None
     hold_closures: bool | None = None
     max_held: int = 10_000
+    robots: tuple[str, ...] = ()
     state: JoinerState = field(init=False)
     gated: list[GateRecord] = field(default_factory=list)
     reinitialised: list[Reinitialisation] = field(default_factory=list)
@@ -659,7 +693,8 @@ class Joiner:
         _check_gate(self.gate_probability)
         strategy = get_strategy(self.mode, self.map_type)  # ConfigError: not a method or map type
         check_strategy_can(strategy.method, strategy.map_type, self.gate_probability, self.hold_closures)
-        self.state = self._scheduled(new_state(strategy.method, strategy.map_type))
+        self.robots = tuple(self.robots)
+        self.state = self._scheduled(replace(new_state(strategy.method, strategy.map_type), robots=self.robots))
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
         CACHE.anchors.clear()  # they place chains of a joiner's map: one joiner per process
 
@@ -688,7 +723,7 @@ class Joiner:
         """Forget every submap, count and buffered message (queued background joins included)."""
         if self.worker is not None:
             self.worker.clear()
-        self.state = self._scheduled(new_state(self.state.method, self.state.map_type))
+        self.state = self._scheduled(replace(new_state(self.state.method, self.state.map_type), robots=self.robots))
         CACHE.anchors.clear()
         self.rejected.clear()
         self.join_seconds.clear()
@@ -698,6 +733,40 @@ class Joiner:
         self._pending_bytes = 0
         self._progress_at = collections.defaultdict(self.clock, {"": self.clock()})
         self.n_skipped = 0
+
+    def check_restorable(self, saved: SavedJoiner) -> tuple[str, ...]:
+        """Check that this joiner can carry on from ``saved``; return the robots its state will record.
+
+        A robot list may grow or shrink at its end: each robot the saved map knows keeps its slot, and a
+        new one takes a slot no saved robot had (the longer list is kept, so a slot given up stays
+        reserved). Reordering or replacing robots would give one robot's submaps another's pose ids.
+
+        Raises:
+            ConfigError: the saved state was joined with another mode or map type, or its robots'
+                slots differ from this joiner's (naming both lists).
+        """
+        state = saved.state
+        if (state.method, state.map_type) != (self.state.method, self.state.map_type):
+            raise ConfigError(
+                f"the saved map was joined with mode={state.method.value!r}, map_type="
+                f"{state.map_type.value!r}; this joiner runs mode={self.state.method.value!r}, "
+                f"map_type={self.state.map_type.value!r}"
+            )
+        named = sorted({s.robot for s in state.streams if s.robot})
+        if not state.robots and named and self.robots:  # a state file of format 7 or older: the names alone
+            if not set(named) <= set(self.robots):
+                raise ConfigError(f"the saved map has robots {named}, not all in robots={list(self.robots)}")
+            logger.warning("the saved map (an older state file) does not record its robots' order: robots=%s is "
+                           "taken to be the order it was joined with", list(self.robots))
+            return self.robots
+        shorter, longer = sorted((state.robots, self.robots), key=len)
+        if longer[:len(shorter)] != shorter:
+            raise ConfigError(
+                f"the saved map was joined with robots={list(state.robots)}, this joiner runs robots={list(self.robots)}: "
+                "each robot's pose ids depend on its place in the list (robot k's pose i is k * 2^32 + i), so a robot "
+                "may only be added or removed at the end"
+            )
+        return longer
 
     def save(self, journal_records: int = 0) -> SavedJoiner:
         """Return the joiner's state, counts and reorder buffer as one immutable value."""
@@ -716,17 +785,12 @@ class Joiner:
         gate's decision records, :attr:`gated` and :attr:`reinitialised`, restart: the counts by reason stay).
 
         Raises:
-            ConfigError: the saved state's strategy differs from this joiner's.
+            ConfigError: the saved state cannot be restored here (:meth:`check_restorable`).
         """
-        if (saved.state.method, saved.state.map_type) != (self.state.method, self.state.map_type):
-            raise ConfigError(
-                f"the saved map was joined with mode={saved.state.method.value!r}, map_type="
-                f"{saved.state.map_type.value!r}; this joiner runs mode={self.state.method.value!r}, "
-                f"map_type={self.state.map_type.value!r}"
-            )
+        robots = self.check_restorable(saved)
         if self.worker is not None:
             self.worker.clear()
-        self.state = self._scheduled(saved.state)
+        self.state = self._scheduled(replace(saved.state, robots=robots))
         if self.worker is not None:  # merges the saved state had not computed (snapshots keep them deferred)
             for chain in self.state.chains:
                 self.worker.submit(self.state.strategy.pending(chain.joined))
@@ -952,12 +1016,13 @@ class Joiner:
             return
         variables = result.split if not result.rejected else result.worst
         ids, kinds = tuple(v.var_id for v in variables), tuple(v.kind for v in variables)
+        own = tuple(v.nis for v in variables), tuple(result.threshold_of(v) for v in variables)
         label = self._who(seq, robot) + f" ({submap.name!r})"
         if closure is not None:  # its one variable is the submap's frame pose, seen from the pose it measured
             ids, kinds = (closure.target,), (POSE,)
             label = f"{closure.describe()}, held until the chain reached pose {closure.target}"
         record = GateRecord(seq, closure.name if closure is not None else submap.name, ids, kinds, result.nis,
-                            result.dof, result.threshold, result.rejected)
+                            result.dof, result.threshold, result.rejected, *own, robot=robot)
         self.gated.append(record)
         self.reject("gated", result.message(label))
 

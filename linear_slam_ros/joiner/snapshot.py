@@ -67,12 +67,13 @@ from linear_slam_ros.joining.sequential import CovarianceMap, SequentialState
 logger = logging.getLogger(__name__)
 
 FORMAT_NAME = "linear_slam_ros.state"
-FORMAT_VERSION = 7
+FORMAT_VERSION = 8
 """Bumped whenever the tree of a state changes; a file of another version is refused, but for the
 versions in :data:`MIGRATED` (2: chains and streams, for islands and several robots; 3: the χ² gate's
 variance factor, ``JoinerState.variance``; 4: deferred merges and blob references; 5: the variance
 factor's ``tail_confidence`` instead of ``prior_submaps``; 6: the gate's re-initialised features,
-``JoinerState.relabels``; 7: forward loop closures held back, ``JoinerState.hold_closures`` and ``held``)."""
+``JoinerState.relabels``; 7: forward loop closures held back, ``JoinerState.hold_closures`` and ``held``;
+8: the robots' slots, ``JoinerState.robots``)."""
 
 _PRIOR_SUBMAPS_DROPPED = (
     "the χ² gate's tail calibration is an upper confidence bound since version 5: the file's "
@@ -84,6 +85,7 @@ MIGRATED: dict[int, str | None] = {
     4: _PRIOR_SUBMAPS_DROPPED,
     5: None,
     6: None,
+    7: None,
 }
 """Older versions still read, and what reading them changes (``None``: nothing, no warning): a
 version 2 tree has no ``JoinerState.variance``, which takes its default
@@ -92,7 +94,8 @@ variance factor's ``prior_submaps`` is dropped (:func:`_variance_factor`); every
 read exactly. A version 3 tree is a version 4 tree without deferred merges or blobs; a version 5
 tree has no ``JoinerState.relabels``, which takes its default (no feature re-initialised: the gate
 re-initialised none before version 6); a version 6 tree has no ``JoinerState.hold_closures`` nor
-``held``, which take their defaults (nothing held: closures were never held before version 7)."""
+``held``, which take their defaults (nothing held: closures were never held before version 7); a
+version 7 tree has no ``JoinerState.robots`` (not recorded: a restore checks the robots' names only)."""
 
 BLOB_MIN_BYTES = 256 << 10
 """Maps of at least this many bytes of arrays are written as blobs when a :class:`BlobStore` is given."""

@@ -27,7 +27,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidHandle
+from rclpy.exceptions import InvalidHandle, InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -129,10 +129,15 @@ class JoinerNode(Node):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         for decl in (*parameter_declarations(), *TF_PARAMETERS):
-            if isinstance(decl.default, list):
-                self._declare_string_array(decl)
-            else:
-                self.declare_parameter(decl.name, decl.default, _descriptor(decl))
+            try:
+                if isinstance(decl.default, list):
+                    self._declare_string_array(decl)
+                else:
+                    self.declare_parameter(decl.name, decl.default, _descriptor(decl))
+            except ParameterException as exc:  # an override of the wrong type or out of range: main() exits with 2
+                hint = " (write a floating-point value with a decimal point, e.g. 10.0)" if isinstance(decl.default, float) \
+                    and isinstance(exc, InvalidParameterTypeException) else ""
+                raise ConfigError(f"parameter {decl.name}: {exc}{hint}") from None
         # Raises ConfigError, naming the parameter, its value and the allowed values: main() exits with 2.
         config = JoinerConfig.from_mapping({
             d.name: self.get_parameter_or(d.name, Parameter(d.name, value=d.default)).value for d in parameter_declarations()
@@ -159,6 +164,7 @@ class JoinerNode(Node):
             reorder_max_bytes=config.reorder_max_bytes, defer_above=config.background_merge_scalars or None,
             worker=self.worker, gate_probability=config.gate_probability or None,
             hold_closures=config.hold_closures or None,  # False: as the gate (held while it is on)
+            robots=config.robots,  # recorded in the state: a restore may not give a robot another's slot
         )
         self.joiner.on_reject = self._on_reject
         self.joiner.on_fused = self._on_fused
@@ -600,7 +606,8 @@ class JoinerNode(Node):
 
         Raises:
             SnapshotError: ``initial_map`` cannot be read (names the file and the problem).
-            ConfigError: the saved state was joined with another mode or map type.
+            ConfigError: the saved state was joined with another mode or map type, or robots list
+                (:meth:`Joiner.check_restorable`).
         """
         config = self.config
         t0 = time.perf_counter()
@@ -633,6 +640,7 @@ class JoinerNode(Node):
         saved = read_snapshot(path)
         if not isinstance(saved, SavedJoiner):
             raise SnapshotError(f"state file {path} holds no joiner state")
+        self.joiner.check_restorable(saved)  # ConfigError before anything is recorded: the old map stays
         with self._snapshot_lock, self._lock:  # the new map's start recorded before it replaces the old one
             if self.store is not None:
                 self.store.mark_start(self._journal_records, path)
@@ -1002,16 +1010,15 @@ class JoinerNode(Node):
         stats.update(self.node_stats())
         status.values = [KeyValue(key=k, value=diagnostic_value(v)) for k, v in stats.items()]
         status.values.append(KeyValue(key="n_received", value=str(self.n_received)))
+        # by reason (bad_message, invalid_map, late, gap, gated, ...), as the summary line counts them
+        status.values.extend(KeyValue(key=f"n_rejected_{reason}", value=str(n)) for reason, n in sorted(rejected.items()))
         status.values.append(KeyValue(key="n_skipped", value=str(self.joiner.n_skipped)))
         status.values.append(KeyValue(key="n_gated", value=str(len(self.joiner.gated))))
         status.values.append(KeyValue(key="n_reinitialised", value=str(len(self.joiner.reinitialised))))
         status.values.append(KeyValue(key="n_held", value=str(len(state.held))))
         if self.joiner.gated:
             last = self.joiner.gated[-1]
-            status.values.append(KeyValue(
-                key="last_gated", value=f"seq {last.submap}: NIS {last.nis:.1f} > {last.threshold:.1f} ({last.dof} dof), "
-                f"variables {list(last.variables)}" + (" (whole submap)" if last.rejected else ""),
-            ))
+            status.values.append(KeyValue(key="last_gated", value=last.describe()))
         for what, seconds in self._persist_seconds.items():
             status.values.append(KeyValue(key=f"{what}_seconds_total", value=diagnostic_value(seconds)))
         for what, seconds in self._cpu_seconds.items():

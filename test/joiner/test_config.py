@@ -39,7 +39,7 @@ def test_declarations_follow_the_config_fields():
         ({"output_frame": "world"}, True,
          r"parameter output_frame='world' is not valid: allowed values are \['end_pose', 'first_pose'\]"),
         ({"publish_rate": 0.0}, True, r"parameter publish_rate=0.0 is outside its range \[0.05, 100\]"),
-        ({"reorder_window": 0}, True, r"parameter reorder_window=0 is outside its range \[1, 1e\+06\]"),
+        ({"reorder_window": 0}, True, r"parameter reorder_window=0 is outside its range \[1, 1000000\]"),
         ({"queue_depth": 1.5}, True, r"parameter queue_depth=1.5 must be of type int"),
         ({"queue_depth": True}, True, r"parameter queue_depth=True must be of type int"),
         ({"map_frame": 3}, True, r"parameter map_frame=3 must be of type str"),
@@ -91,3 +91,13 @@ def test_the_gate_cannot_be_turned_on_at_run_time_where_it_cannot_work():
     with pytest.raises(ConfigError, match=r"reorder_window=0 must be an integer >= 1"):
         j.set_reorder(window=0)
     assert j.reorder_window == 100
+
+
+def test_a_leading_tilde_in_a_path_parameter_is_the_home_folder(monkeypatch):
+    """No shell expands ``~`` in a parameter file or ``-p``: the journal landed in a folder named ``~`` under the
+    node's working directory, and a restart from elsewhere found no state."""
+    monkeypatch.setenv("HOME", "/home/robot")
+    names = ("state_dir", "save_directory", "load_path", "initial_map", "timing_file")
+    config = JoinerConfig.from_mapping({name: f"~/.ros/run1/{name}" for name in names})
+    assert [getattr(config, name) for name in names] == [f"/home/robot/.ros/run1/{name}" for name in names]
+    assert JoinerConfig.from_mapping({"map_frame": "~odom"}).map_frame == "~odom"  # not a path: as given

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import numpy as np
 import pytest
@@ -369,3 +370,67 @@ def test_a_third_island_bridging_two_links_all_three():
     _, saved = run_joiner([m for _, _, m in stream], "online-dc", seqs=[q for _, q, _ in stream],
                           robots=[r for r, _, _ in stream])
     assert [(i.label, i.n_submaps) for i in saved.state.islands] == [(0, 5)]
+
+
+def _two_robot_state(maps, robots: tuple[str, ...]):
+    j = Joiner(JoinMethod.ONLINE_DC, robots=robots)
+    for seq in (1, 2):
+        j.offer(maps[seq - 1], seq, robots[0])
+        j.offer(qualify(maps[6 + seq], 1), seq, robots[1])
+    return j.save()
+
+
+def test_a_restore_that_would_give_a_robot_another_s_slot_is_refused(maps, tmp_path):
+    """Resumed with robots [b, a], robot b's submaps took robot a's pose ids and continued a's chain, silently."""
+    path = tmp_path / "state.npz"
+    write_snapshot(path, _two_robot_state(maps, ("a", "b")))
+    saved = read_snapshot(path)
+    assert saved.state.robots == ("a", "b")  # recorded, and through the state file
+    for robots in (("b", "a"), ("a", "c"), ("b",)):
+        expected = r"joined with robots=\['a', 'b'\], this joiner runs robots=" + re.escape(str(list(robots)))
+        with pytest.raises(ConfigError, match=expected):
+            Joiner(JoinMethod.ONLINE_DC, robots=robots).restore(saved)
+    grown = Joiner(JoinMethod.ONLINE_DC, robots=("a", "b", "c"))  # a robot added at the end: every slot kept
+    grown.restore(saved)
+    assert grown.state.robots == ("a", "b", "c")
+    shrunk = Joiner(JoinMethod.ONLINE_DC, robots=("a",))  # b removed at the end: its slot stays reserved
+    shrunk.restore(saved)
+    assert shrunk.state.robots == ("a", "b")
+    with pytest.raises(ConfigError, match=r"joined with robots=\['a', 'b'\], this joiner runs robots=\['a', 'c'\]"):
+        Joiner(JoinMethod.ONLINE_DC, robots=("a", "c")).restore(shrunk.save())  # c may not take b's slot later
+    shrunk.reset()
+    assert shrunk.state.robots == ("a",)  # an empty map holds no robot's poses
+    single = Joiner(JoinMethod.ONLINE_DC)
+    single.offer(maps[0], 1)
+    Joiner(JoinMethod.ONLINE_DC, robots=("a", "b")).restore(single.save())  # one robot's map: robot a is slot 0
+
+
+def test_a_state_file_without_the_robots_order_is_checked_by_name(maps, caplog):
+    import dataclasses
+
+    older = _two_robot_state(maps, ("a", "b"))
+    older = dataclasses.replace(older, state=dataclasses.replace(older.state, robots=()))  # as format 7 wrote it
+    with pytest.raises(ConfigError, match=r"the saved map has robots \['a', 'b'\], not all in robots=\['a', 'c'\]"):
+        Joiner(JoinMethod.ONLINE_DC, robots=("a", "c")).restore(older)
+    with caplog.at_level(logging.WARNING):
+        j = Joiner(JoinMethod.ONLINE_DC, robots=("a", "b"))
+        j.restore(older)
+    assert "does not record its robots' order" in caplog.text and j.state.robots == ("a", "b")
+    Joiner(JoinMethod.ONLINE_DC).restore(older)  # a joiner given no robots (a library caller's own slots): as before
+
+
+def test_chains_joined_when_islands_meet_defer_their_merges_as_every_chain_does():
+    """They were re-seeded without the joiner's deferral: the running state then differed from the same state saved
+    and restored (restore applies it), and later merges on that chain ran on arrival, not in the background."""
+    world = make_world(2, 40, 30, np.random.default_rng(3))
+    maps = noisy_local_maps(world, np.random.default_rng(4), steps_per_map=3, sensor_range=7.0)
+    j = Joiner(JoinMethod.ONLINE_DC, defer_above=0, reorder_window=1)
+    for seq, m in enumerate(maps, start=1):
+        if seq not in (5, 10):  # two lost submaps: three islands, the first two frozen and joined into one chain
+            j.offer(m, seq)
+    j.flush()
+    assert len(j.state.chains) == 2 and [c.n_joined for c in j.state.chains] == [8, 4]
+    assert [c.joined.defer_above for c in j.state.chains] == [0, 0]
+    restored = Joiner(JoinMethod.ONLINE_DC, defer_above=0)
+    restored.restore(j.save())
+    assert restored.state == j.state  # one value, equal to itself through a save and a restore

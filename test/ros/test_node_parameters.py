@@ -168,6 +168,7 @@ def test_diagnostics_warn_while_submaps_are_rejected_and_are_ok_again_after_a_qu
             (DiagnosticStatus.WARN, "1 submaps rejected in the last 5 s (2 in all)"),
         ]
         assert {v.key: v.value for v in sent[1].status[0].values}["n_rejected"] == "1"  # the total stays
+        assert {v.key: v.value for v in sent[2].status[0].values}["n_rejected_bad_message"] == "2"  # and by reason
         monkeypatch.setattr(joiner.joiner, "stats", lambda: {"n_joined": 1234570.0, "n_rejected": 2e6, "last_join_ms": 0.1234567})
         joiner._on_summary_timer()
         values = {v.key: v.value for v in sent[-1].status[0].values}  # counts in full (%g: 1.23457e+06, 2e+06)
@@ -185,3 +186,19 @@ def test_help_prints_the_usage_instead_of_starting_the_node(capsys):
     assert "  gate_probability = 0.0: " in text and "  mode = 'online-dc' *: " in text  # every parameter, read-only starred
     sim_frontend.main(["sim_frontend", "-h"])
     assert "a simulated robot and SLAM front-end" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("override", "match"), [
+    (Parameter("reorder_timeout", value=10), r"^parameter reorder_timeout: Trying to set parameter 'reorder_timeout' to '10' "
+     r"of type 'INTEGER', expecting type .*DOUBLE.* \(write a floating-point value with a decimal point, e\.g\. 10\.0\)$"),
+    (Parameter("publish_rate", value=0.0), r"^parameter publish_rate: .*publish_rate.*0\.0"),
+    (Parameter("queue_depth", value="deep"), r"^parameter queue_depth: Trying to set parameter 'queue_depth' to 'deep'.*INTEGER"),
+])
+def test_an_override_rclpy_refuses_stops_the_start_with_a_config_error(rclpy_session, monkeypatch, override, match):
+    """rclpy refuses it before the joiner's own check: it ended in a traceback and exit code 1, not 2."""
+    from linear_slam_ros.core.errors import ConfigError
+
+    monkeypatch.setattr(node_module, "set_blas_threads", lambda n: None)
+    monkeypatch.setattr(node_module, "tune_allocator", lambda threshold: True)
+    with pytest.raises(ConfigError, match=match):
+        node_module.JoinerNode(namespace=f"t{uuid.uuid4().hex[:8]}", parameter_overrides=[override])

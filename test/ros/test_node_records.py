@@ -304,3 +304,37 @@ def test_a_gap_given_up_by_the_reorder_timeout_is_snapshotted_at_once(make_node,
     node._on_expire_timer()  # (no executor spins here) 3 is given up
     assert node.joiner.state.n_joined == 3
     assert wait_until(lambda: [n for n, _ in node.store.snapshots()] == [3], 2.0), node.store.snapshots()
+
+
+@pytest.mark.parametrize("other", ["mode", "robots"])
+def test_a_load_map_refused_leaves_the_old_map_to_resume_from(make_node, maps, tmp_path, monkeypatch, other):
+    """The start of the loaded map was recorded (start.json, the old snapshots deleted) before the restore refused it:
+    after a crash the next start took the refused file again and could not start (the old map was lost)."""
+    from linear_slam_ros.joiner.joiner import Joiner
+    from linear_slam_ros.joiner.robots import qualify
+    from linear_slam_ros.joiner.snapshot import write_snapshot
+    from linear_slam_ros.joiner.strategy import JoinMethod
+
+    if other == "mode":
+        foreign = Joiner(JoinMethod.SEQUENTIAL)
+        foreign.offer(maps[0], 1)
+        expected = "mode='sequential'"
+    else:
+        foreign = Joiner(JoinMethod.ONLINE_DC, robots=("b", "a"))
+        foreign.offer(maps[0], 1, "b")
+        foreign.offer(qualify(maps[5], 1), 1, "a")
+        expected = r"robots=['b', 'a'], this joiner runs robots=['a', 'b']"
+    write_snapshot(tmp_path / "foreign.npz", foreign.save())
+    state_dir = str(tmp_path / "state")
+    node, _ = make_node(state_dir=state_dir, robots=["a", "b"])
+    for seq in (1, 2, 3):
+        node._receive("a/local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "a")
+    node._flush_poses()
+    node.set_parameters([Parameter("load_path", value=str(tmp_path / "foreign.npz"))])
+    response = _trigger(node._on_load_map)
+    assert not response.success and expected in response.message, response.message
+    assert node.joiner.state.n_joined == 3
+    monkeypatch.setattr(node, "_snapshot", lambda: None)  # a crash: no final snapshot, the journal alone
+    node.destroy_node()
+    again, _ = make_node(state_dir=state_dir, robots=["a", "b"])
+    assert again.joiner.state.n_joined == 3  # the old map, resumed

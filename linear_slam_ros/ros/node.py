@@ -27,6 +27,7 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
 from rclpy.exceptions import InvalidHandle, InvalidParameterTypeException, ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -239,8 +240,14 @@ class JoinerNode(Node):
         )
         # publish_tf: map_frame -> odom_frame or base_frame at the newest pose (tf2_ros where installed; README, TF)
         self._base_frame = str(self.get_parameter("base_frame").value)
+        odom_frame = str(self.get_parameter("odom_frame").value)
         if self.get_parameter("publish_tf").value:
-            self._tf = self._tf_output(str(self.get_parameter("odom_frame").value))
+            self._tf = self._tf_output(odom_frame)
+        # map -> odom again ahead of the clock between submaps, so map -> base lookups at "now" work (README, TF)
+        period = float(self.get_parameter("tf_publish_period").value)
+        self._tf_resender = PeriodicThread(
+            [PeriodicTask("tf_resend", lambda: period, self._on_tf_timer)], self._on_output_error, name="linear_slam_tf",
+        ) if self._tf is not None and odom_frame and period > 0 else None
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # The executor (single-threaded: main) takes the arrivals and the services; the outputs, the
         # snapshots and the summary run on their own thread (README, "Scale").
@@ -695,6 +702,8 @@ class JoinerNode(Node):
             self.get_logger().warning("the output thread did not stop within 30 s")
         if self._syncer is not None and not self._syncer.stop():
             self.get_logger().warning("the journal's sync thread did not stop within 30 s")
+        if self._tf_resender is not None:
+            self._tf_resender.stop()
         if self.store is not None:
             self._snapshot()
             self.store.close()
@@ -766,6 +775,12 @@ class JoinerNode(Node):
         if self._tf is not None:
             child = f"{robot}/{self._base_frame}" if robot else self._base_frame
             self._tf.publish(transform_msg(dim, pose, frame, child, stamp))
+
+    def _on_tf_timer(self) -> None:
+        """Send the newest ``map -> odom`` again, stamped ``tf_publish_period`` ahead of the node's clock."""
+        if self._tf is not None and self.context.ok():
+            ahead = Duration(seconds=float(self.get_parameter("tf_publish_period").value))
+            self._tf.resend((self.get_clock().now() + ahead).to_msg())
 
     def _tf_output(self, odom_frame: str) -> TfOutput | None:
         """Return the TF output of ``publish_tf``, or ``None`` (with a warning) when nothing can send it here."""
@@ -1029,6 +1044,7 @@ class JoinerNode(Node):
             status.values.append(KeyValue(key="tf_sent", value=str(self._tf.n_sent)))
             status.values.append(KeyValue(key="tf_repeated_stamp", value=str(self._tf.n_repeated)))
             status.values.append(KeyValue(key="tf_no_odometry", value=str(self._tf.n_no_odometry)))
+            status.values.append(KeyValue(key="tf_resent", value=str(self._tf.n_resent)))
         self.pub_diag.publish(DiagnosticArray(header=status_header(self), status=[status]))
 
 

@@ -69,6 +69,17 @@ TF_PARAMETERS = (
         ),
         (),
     ),
+    ParameterDeclaration(
+        "tf_publish_period",
+        0.05,
+        ParamSpec(
+            "with publish_tf and odom_frame: seconds between re-sends of the newest map_frame -> odom_frame, each "
+            "stamped this far ahead of the node's clock, so that lookups at the current time never extrapolate "
+            "between submaps; 0: sent with each pose only",
+            read_only=True, bounds=(0.0, 10.0),
+        ),
+        (),
+    ),
 )
 """The node's TF parameters, declared beside :func:`~linear_slam_ros.joiner.config.parameter_declarations`."""
 
@@ -123,7 +134,10 @@ class TfOutput:
         self._send, self._odom_frame, self._lookup, self._warn = send, odom_frame, lookup, warn
         self._lock = threading.Lock()
         self._last: dict[str, tuple[int, int]] = {}  # child frame -> newest stamp sent
+        self._map_odom: TransformStamped | None = None  # the newest map -> odom sent, for resend()
+        self._resent_at: tuple[int, int] = (0, 0)  # the newest stamp resend() sent
         self.n_sent = 0
+        self.n_resent = 0  # map -> odom sent again by resend()
         self.n_repeated = 0  # transforms of a stamp already sent (not sent)
         self.n_no_odometry = 0  # odometry lookups that failed (not sent)
 
@@ -146,15 +160,39 @@ class TfOutput:
                         self._warn(f"no TF sent at {stamp[0]}.{stamp[1]:09d}: no {self._odom_frame} -> {child} there ({exc})")
                     return False
                 transform = map_to_odom(map_base, odom_base)
+                self._map_odom = transform
             self._last[child] = stamp
             self.n_sent += 1
         self._send(transform)
         return True
 
+    def resend(self, stamp: Time) -> bool:
+        """Send the newest ``map -> odom`` again at ``stamp`` (later than any it was sent at); return whether it was.
+
+        ``map -> odom`` changes only when a submap is joined, while the odometry's ``odom -> base``
+        goes on: without a recent ``map -> odom``, a lookup of ``map -> base`` at the current time
+        extrapolates and fails. So the node re-sends it ahead of its clock, as SLAM nodes do. Only
+        with ``odom_frame``: ``map -> base`` sent again would say the robot stood still.
+        """
+        key = (stamp.sec, stamp.nanosec)
+        with self._lock:
+            if self._map_odom is None or key <= self._resent_at:  # a stopped clock (sim time): no repeated stamp
+                return False
+            previous = self._map_odom
+            transform = TransformStamped(child_frame_id=previous.child_frame_id, transform=previous.transform)
+            transform.header.frame_id = previous.header.frame_id
+            transform.header.stamp = stamp
+            self._resent_at = key
+            self.n_resent += 1
+        self._send(transform)
+        return True
+
     def reset(self) -> None:
-        """Forget the stamps sent (``~/reset``, ``~/load_map``: a new map may start at an earlier time)."""
+        """Forget the stamps and the ``map -> odom`` sent (``~/reset``, ``~/load_map``: a new map may start at an
+        earlier time, and its first pose has not been sent)."""
         with self._lock:
             self._last.clear()
+            self._map_odom = None
 
 
 def tf_sender(node: Node) -> tuple[TfSender | None, str]:

@@ -132,7 +132,8 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
     odom_base = transform_msg(2, np.array([0.5, -1.0, 0.2]), "odom", "robot", Stamp(0, 0))
     for odom_frame in ("", "odom"):
         transforms.clear()
-        node, sent = make_node(publish_tf=True, base_frame="robot", odom_frame=odom_frame, publish_rate=50.0)
+        node, sent = make_node(publish_tf=True, base_frame="robot", odom_frame=odom_frame, publish_rate=50.0,
+                               tf_publish_period=0.0)  # with each pose only (re-sends: the next test)
         for seq in range(1, 7):
             node._receive("local_map", _raw(maps[seq - 1], seq, Stamp(1000 + seq, 0)), "")
             node._flush_poses()
@@ -148,6 +149,33 @@ def test_tf_goes_out_once_per_stamp_and_to_odom_with_odom_frame(make_node, maps,
             for got, want in ((t.transform.translation, expected.transform.translation),
                               (t.transform.rotation, expected.transform.rotation)):
                 np.testing.assert_allclose([got.x, got.y, got.z], [want.x, want.y, want.z], atol=1e-12)
+
+
+def test_map_to_odom_is_sent_again_ahead_of_the_node_clock_between_submaps(make_node, maps, monkeypatch):
+    from geometry_msgs.msg import TransformStamped
+
+    from msg_adapters.views import transform_msg
+
+    transforms: list[TransformStamped] = []
+    monkeypatch.setattr(node_module, "tf_sender", lambda node: (transforms.append, "a test sender"))
+    odom_base = transform_msg(2, np.array([0.5, -1.0, 0.2]), "odom", "robot", Stamp(0, 0))
+    monkeypatch.setattr(node_module, "odom_lookup", lambda: (lambda odom, base, stamp: odom_base, "a test lookup"))
+    node, _ = make_node(publish_tf=True, base_frame="robot", odom_frame="odom", tf_publish_period=0.05)
+    time.sleep(0.2)
+    assert transforms == []  # nothing to send again before the first pose
+    node._receive("local_map", _raw(maps[0], 1, Stamp(1000, 0)), "")
+    node._flush_poses()
+    assert wait_until(lambda: len(transforms) >= 4, 5.0)
+    first, *again = transforms[:4]
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (1000, 0)  # the pose's own
+    now = node.get_clock().now().nanoseconds
+    stamps = [t.header.stamp.sec * 10**9 + t.header.stamp.nanosec for t in again]
+    assert stamps == sorted(set(stamps)) and now - 2 * 10**9 < stamps[0] <= now + 0.05e9  # ahead of the clock, once each
+    assert all((t.header.frame_id, t.child_frame_id, t.transform) == ("map", "odom", first.transform) for t in again)
+    node.destroy_node()
+    stopped = len(transforms)
+    time.sleep(0.2)
+    assert len(transforms) == stopped  # the re-sending thread ended with the node
 
 
 def test_without_an_odometry_buffer_odom_frame_sends_no_tf(make_node, monkeypatch):

@@ -88,3 +88,27 @@ def test_with_odom_frame_the_transform_goes_to_odom_or_not_at_all():
 def test_odom_frame_needs_a_lookup():
     with pytest.raises(ValueError, match="^odom_frame 'odom' needs an odometry lookup \\(tf2_ros\\)$"):
         TfOutput(print, "odom")
+
+
+def test_map_to_odom_is_sent_again_ahead_of_the_clock_and_never_at_a_stamp_already_sent():
+    """Between submaps only odometry moved: a lookup of map -> base at the current time extrapolated past the newest
+    map -> odom and failed (tf2), which a navigation stack meets at once."""
+    sent: list[TransformStamped] = []
+    odom_base = _transform("odom", "base_link", Rotation.from_euler("z", 0.2), [0.5, 0.0, 0.0], Time(sec=7))
+    tf = TfOutput(sent.append, "odom", lambda odom, base, stamp: odom_base)
+    assert not tf.resend(Time(sec=7, nanosec=50))  # nothing sent yet: nothing to send again
+    map_base = transform_msg(2, np.array([3.0, 4.0, 1.0]), "map", "base_link", Time(sec=7))
+    assert tf.publish(map_base)
+    assert tf.resend(Time(sec=7, nanosec=100_000_000))
+    assert not tf.resend(Time(sec=7, nanosec=100_000_000))  # a stopped clock (sim time after a bag): no repeated stamp
+    assert tf.resend(Time(sec=7, nanosec=150_000_000))
+    assert [(t.header.stamp.sec, t.header.stamp.nanosec) for t in sent] == [(7, 0), (7, 100_000_000), (7, 150_000_000)]
+    assert all((t.header.frame_id, t.child_frame_id) == ("map", "odom") for t in sent)
+    for t in sent[1:]:
+        np.testing.assert_array_equal(_matrix(t), _matrix(sent[0]))  # the same correction, later
+    assert tf.n_resent == 2 and tf.n_sent == 1
+    assert tf.publish(transform_msg(2, np.zeros(3), "map", "base_link", Time(sec=7, nanosec=120_000_000)))  # a submap's
+    tf.reset()  # a new map: the old correction is not sent again
+    assert not tf.resend(Time(sec=9))
+    plain = TfOutput(sent.append)  # map -> base_link: sent again, it would say the robot stood still
+    assert plain.publish(map_base) and not plain.resend(Time(sec=8))

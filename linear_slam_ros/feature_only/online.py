@@ -61,13 +61,22 @@ def feature_step(state: FeatureJoinState, submap: LocalMap, divide_and_conquer: 
         divide_and_conquer: push closed groups on a binary-counter stack instead of joining them
             into one map.
 
+    A submap that sees no feature (odometry alone, a stretch without landmarks) is merged into
+    the open group through its poses, as the offline preconditioning does: refusing it broke the
+    chain of frames, and every later submap was refused. Only while the map holds no feature yet
+    is such a submap refused (nothing is lost: the map starts at the next one's frame; a pose-graph
+    stream is refused that way).
+
     Raises:
-        InvalidMapError: the submap holds no feature, or its dimension differs from the map's.
+        InvalidMapError: the submap holds no feature while the map holds none yet, or its
+            dimension differs from the map's.
         LinearSlamError: the submap cannot be merged or the closed group cannot be converted or
             joined (the state is unchanged).
     """
-    if not np.any(submap.kinds == FEATURE):
-        raise InvalidMapError(f"submap {submap.name!r} holds no feature: map_type feature-only joins pose-feature maps")
+    if state.group is None and not state.stack and not np.any(submap.kinds == FEATURE):
+        raise InvalidMapError(
+            f"submap {submap.name!r} holds no feature, and the map none yet: map_type feature-only joins pose-feature maps"
+        )
     if state.group is not None and submap.dim != state.group.merged.dim:
         raise InvalidMapError(f"submap {submap.name!r} is {submap.dim}D, the global map is {state.group.merged.dim}D")
     closed, group = precondition_step(state.group, submap)

@@ -9,12 +9,13 @@ from linear_slam_ros.core.errors import InvalidMapError
 from linear_slam_ros.core.local_map import FEATURE, POSE, LocalMap
 from linear_slam_ros.evaluation.synthetic import exact_pose_graph_maps, make_world, noisy_local_maps
 from linear_slam_ros.feature_only.conversion import to_feature_only
-from linear_slam_ros.feature_only.joining import join_features_dc, join_features_sequential
+from linear_slam_ros.feature_only.joining import join_feature_maps, join_features_dc, join_features_sequential
 from linear_slam_ros.feature_only.online import FeatureJoinState, feature_result, feature_step
 from linear_slam_ros.feature_only.precondition import precondition
 from linear_slam_ros.joiner.joiner import Joiner
 from linear_slam_ros.joiner.registry import get_strategy
 from linear_slam_ros.joiner.strategy import JoinMethod, MapType
+from linear_slam_ros.joining.divide_conquer import counter_push, merge_stack
 from support import global_feature_map_of, global_map_of
 
 
@@ -98,15 +99,15 @@ def test_bad_submaps_are_rejected_and_leave_the_state_unchanged():
     maps = _maps(2)
     state = _run(maps[:3], JoinMethod.SEQUENTIAL)
     pose_only = exact_pose_graph_maps(make_world(2, 10, 0, np.random.default_rng(1)), np.random.default_rng(2))[0]
-    with pytest.raises(InvalidMapError, match="holds no feature: map_type feature-only joins pose-feature maps"):
-        feature_step(state, pose_only, divide_and_conquer=False)
+    with pytest.raises(InvalidMapError, match="holds no feature, and the map none yet: map_type feature-only joins"):
+        feature_step(FeatureJoinState(), pose_only, divide_and_conquer=False)  # a pose graph is refused from the start
     with pytest.raises(InvalidMapError, match="is 3D, the global map is 2D"):
         feature_step(state, _maps(3)[0], divide_and_conquer=False)
     before = feature_result(state)
     j = Joiner(JoinMethod.SEQUENTIAL, MapType.FEATURE_ONLY)
     for seq, m in enumerate(maps[:3], start=1):
         j.offer(m, seq)
-    assert j.offer(pose_only, 4) == [] and j.rejected["InvalidMapError"] == 1
+    assert j.offer(_maps(3)[0], 4) == [] and j.rejected["InvalidMapError"] == 1
     np.testing.assert_array_equal(global_feature_map_of(j.state).x, before.x)
 
 
@@ -124,3 +125,35 @@ def test_joiner_in_feature_only_mode():
         global_feature_map_of(Joiner(JoinMethod.SEQUENTIAL).state)
     j.reset()
     assert j.state.map_type is MapType.FEATURE_ONLY and global_feature_map_of(j.state) is None
+
+
+@pytest.mark.parametrize("method", [JoinMethod.SEQUENTIAL, JoinMethod.ONLINE_DC])
+def test_submaps_that_see_no_feature_are_merged_through_their_poses(method):
+    """A stretch with no landmark in sight (odometry alone): such a submap was refused, the next ones were in the frame
+    of a pose the map did not hold, and every later submap was refused (4 of the 8 features seen, for good)."""
+    from linear_slam_ros.evaluation.synthetic import World
+
+    rng = np.random.default_rng(1)
+    poses = np.zeros((13, 3))
+    poses[:, 0] = np.arange(13.0)  # a straight drive, landmarks near its start and its end only
+    features = {k + 1: np.array([cx + rng.uniform(-0.3, 0.3), dy])
+                for k, (cx, dy) in enumerate((cx, dy) for cx in (0.5, 1.5, 11.0, 12.0) for dy in (-2.0, 2.0, 3.0))}
+    maps = noisy_local_maps(World(2, poses, features), np.random.default_rng(2), steps_per_map=1, sensor_range=3.0)
+    blind = [m.name for m in maps if not np.any(m.kinds == FEATURE)]
+    assert len(blind) >= 2 and maps[0].name not in blind
+    j = Joiner(method, MapType.FEATURE_ONLY)
+    for seq, m in enumerate(maps, start=1):
+        assert j.offer(m, seq) == [seq]
+    assert j.n_rejected == 0
+    closed = [to_feature_only(g) for g in precondition(maps)]
+    if method is JoinMethod.SEQUENTIAL:
+        batch = join_features_sequential(closed)
+    else:  # the binary-counter stack of the closed groups, then the open one, merged as feature_result does
+        stack, counts = (), ()
+        for fmap in closed[:-1]:
+            stack, counts = counter_push(stack, counts, fmap, join_feature_maps)
+        batch = merge_stack([*stack, closed[-1]], join_feature_maps)
+    joined = global_feature_map_of(j.state)
+    seen = sorted({int(i) for m in maps for i in m.ids[m.kinds == FEATURE]})
+    assert sorted(joined.all_ids.tolist()) == sorted(batch.all_ids.tolist()) == seen  # every feature seen
+    np.testing.assert_allclose(joined.x, batch.x, atol=1e-9)

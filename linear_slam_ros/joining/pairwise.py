@@ -87,8 +87,10 @@ class UnionSystem:
         keys: ``(m,)`` their keys; ``key_set`` maps each key to its index.
         key_set: key to variable index.
         info: ``(n, n)`` joined information ``A^T I_Z A`` (dense up to :data:`DENSE_MAX`, else canonical CSR).
-        rhs: ``(n,)`` ``A^T I_Z Z``; ``None`` when the maps share nothing (``x`` is then known).
-        x: ``(n,)`` the estimate when nothing is shared, else ``None``.
+        rhs: ``(n,)`` ``A^T I_Z (Z - A x)``, the normal equations of the correction to ``x``;
+            ``None`` when the maps share nothing (``x`` is then the estimate).
+        x: ``(n,)`` the start point: each scalar as the map that first holds it says (the earlier
+            map's, then the later map's new ones): both estimates side by side.
     """
 
     dim: int
@@ -101,7 +103,7 @@ class UnionSystem:
     key_set: dict[int, int]
     info: FloatArray | sp.csr_matrix
     rhs: FloatArray | None
-    x: FloatArray | None
+    x: FloatArray
 
     def solve(self, name: str = GLOBAL_NAME) -> LocalMap:
         """Solve the system: the joined map, in the shared frame.
@@ -194,11 +196,19 @@ def _union_normal_equations(
     z_b: FloatArray,
     b_to_union: IntArray,
     n: int,
-) -> tuple[FloatArray | sp.csr_matrix, FloatArray | None, FloatArray | None]:
-    """:func:`solve_union`'s ``A^T I_Z A`` and ``A^T I_Z Z``, or, when the maps share nothing, ``A^T I_Z A``,
-    ``None`` and the estimate (both side by side)."""
+) -> tuple[FloatArray | sp.csr_matrix, FloatArray | None, FloatArray]:
+    """:func:`solve_union`'s ``A^T I_Z A``, the right-hand side of the correction to the start point and the start
+    point (:class:`UnionSystem`); when the maps share nothing, ``None`` and the estimate (both side by side).
+
+    The correction's right-hand side is ``A^T I_Z (Z - A x0)``: only ``b``'s disagreement with ``a`` on
+    what they share (``a``'s part is zero), not the coordinates themselves, so round-off does not grow
+    with the lever arms of a long chain (an absolute ``A^T I_Z Z`` lost digits in proportion).
+    """
     n_a = z_a.size
     disjoint = b_to_union.size == 0 or int(b_to_union.min()) >= n_a
+    x0 = np.empty(n)
+    x0[b_to_union] = z_b
+    x0[:n_a] = z_a  # what both hold: the earlier map's value
     if n <= DENSE_MAX:
         dense_a, dense_b = to_dense(info_a), to_dense(info_b)
         info = np.zeros((n, n))
@@ -206,35 +216,25 @@ def _union_normal_equations(
         rows, cols = b_to_union[:, None], b_to_union[None, :]
         if disjoint:  # the least-squares solution is both estimates side by side
             info[rows, cols] = dense_b
-            return info, None, _side_by_side(z_a, z_b, b_to_union, n)
+            return info, None, x0
         info[rows, cols] += dense_b
         rhs = np.zeros(n)
-        rhs[:n_a] = dense_a @ z_a
-        rhs[b_to_union] += dense_b @ z_b
-        return info, rhs, None
+        rhs[b_to_union] = dense_b @ (z_b - x0[b_to_union])
+        return info, rhs, x0
     csr_a, csr_b = canonical_csr(info_a), canonical_csr(info_b)
     joined = _padded(csr_a, n) + scatter_csr(csr_b, b_to_union, n)  # both canonical: one merge pass
     if disjoint:
-        return joined, None, _side_by_side(z_a, z_b, b_to_union, n)
+        return joined, None, x0
     rhs = np.zeros(n)
-    rhs[:n_a] = csr_a @ z_a
-    rhs[b_to_union] += csr_b @ z_b
-    return joined, rhs, None
+    rhs[b_to_union] = csr_b @ (z_b - x0[b_to_union])
+    return joined, rhs, x0
 
 
-def _side_by_side(z_a: FloatArray, z_b: FloatArray, b_to_union: IntArray, n: int) -> FloatArray:
-    x = np.empty(n)
-    x[: z_a.size] = z_a
-    x[b_to_union] = z_b
-    return x
-
-
-def _estimate(info: FloatArray | sp.csr_matrix, rhs: FloatArray | None, x: FloatArray | None) -> FloatArray:
-    """The joined estimate: ``x`` when the maps share nothing (``rhs`` is ``None``), else the solution."""
+def _estimate(info: FloatArray | sp.csr_matrix, rhs: FloatArray | None, x: FloatArray) -> FloatArray:
+    """The joined estimate: ``x`` when the maps share nothing (``rhs`` is ``None``), else ``x`` plus the correction."""
     if rhs is None:
-        assert x is not None
         return x
-    return _solve_spd(info, rhs)
+    return x + _solve_spd(info, rhs)
 
 
 def _solve_spd(info: FloatArray | sp.csr_matrix, rhs: FloatArray) -> FloatArray:

@@ -135,3 +135,21 @@ def test_errors_name_the_maps_and_poses(rng):
         divide_and_conquer_levels([stray, holds.replace(frame_id=2)])
     with pytest.raises(InvalidMapError, match="are in frames 0 and 2; align them first"):
         join_pairs(MapBatch.of_maps(maps[:2]))
+
+
+@pytest.mark.parametrize("method", ["dc", "online-dc"])
+def test_a_long_noise_free_chain_is_joined_exactly(method):
+    """Lemma 1: noise-free submaps are joined exactly, however long the chain. The joins solved for absolute
+    coordinates, so round-off grew with the chain's lever arms: a 1.6 km chain with loop closures ended 4.4e-5 m off
+    (dc) and 3.3e-6 m (online-dc); 1.1 cm over 12,800 steps. They now solve for the correction to a start point."""
+    from linear_slam_ros.evaluation.runner import run_join
+    from linear_slam_ros.evaluation.synthetic import World
+
+    n = 1600
+    poses = np.zeros((n + 1, 3))
+    poses[:, 0] = np.arange(n + 1.0)  # 1 m a step, bending slowly away from the x axis
+    poses[:, 1] = 1e-4 * np.arange(n + 1.0) ** 1.5
+    maps = exact_pose_graph_maps(World(2, poses, {}), np.random.default_rng(1), loop_every=7, loop_span=5)
+    joined = change_frame(run_join(maps, method).result, 0)
+    x = np.stack([joined.x[joined.scalar_slice(i)] for i in range(joined.n_vars)])
+    np.testing.assert_allclose(x[:, :2], poses[joined.ids, :2], rtol=0, atol=1e-9)

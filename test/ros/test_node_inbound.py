@@ -60,7 +60,7 @@ def test_the_callback_takes_its_message_then_at_most_drain_max_queued_ones_in_or
     received: list[tuple[str, bytes, str]] = []
     flushed: list[int] = []  # messages received when each flush came
     fake_node = SimpleNamespace(_receive=lambda topic, raw, robot: received.append((topic, raw, robot)),
-                                _flush_poses=lambda: flushed.append(len(received)))
+                                _flush_poses=lambda: flushed.append(len(received)), context=SimpleNamespace(ok=lambda: True))
     receive = JoinerNode._receiver(fake_node, "r1/pose_graph", "r1")  # type: ignore[arg-type]
     assert receive.subscription is None
     receive(b"first")  # before the subscription is set: only the message given
@@ -80,7 +80,7 @@ def test_the_callback_takes_its_message_then_at_most_drain_max_queued_ones_in_or
 
 def test_a_drain_holds_the_pose_back_at_most_pose_coalesce_s_and_the_flush_publishes_it(monkeypatch):
     published: list[tuple[str, list[int], str]] = []
-    fake_node = SimpleNamespace(_pending_pose={})
+    fake_node = SimpleNamespace(_pending_pose={}, context=SimpleNamespace(ok=lambda: True))
     fake_node._publish_pose = lambda state, joined, robot: published.append((state, list(joined), robot))
     now = [100.0]
     monkeypatch.setattr(time, "monotonic", lambda: now[0])

@@ -368,7 +368,7 @@ class GateRecord:
                 "variable_thresholds": list(self.variable_thresholds)}
 
     def describe(self) -> str:
-        """One line saying which test failed: ``seq 17: feature 34 NIS 64.4 > 45.5 (2 dof); submap NIS 105.6 <= 154.5
+        """One line saying which test failed: ``seq 17: feature 34 NIS 64.4 > 45.4; submap NIS 105.6 <= 154.5
         (60 dof)``, then ``(whole submap)`` when it was gated whole."""
         parts = [
             f"{'pose' if kind == POSE else 'feature'} {var} NIS {nis:.1f} {'>' if nis > limit else '<='} {limit:.1f}"

@@ -249,7 +249,9 @@ def star_local_maps(graph: PoseGraph, limits: InputLimits | None = None) -> list
         limits: the numeric bounds the maps are validated with (default limits when None).
 
     Returns:
-        The maps, by increasing frame pose, named ``"<graph name>: edges from pose <i>"``.
+        The maps, by increasing frame pose, named ``"<graph name>: edges from pose <i>"``; each
+        ends at the next map's frame pose when it holds it (else at
+        :func:`~linear_slam_ros.core.local_map.default_end_pose`).
 
     Raises:
         GraphError: a map is invalid.
@@ -266,6 +268,14 @@ def star_local_maps(graph: PoseGraph, limits: InputLimits | None = None) -> list
             dim=graph.dim, name=f"{graph.name}: edges from pose {frame}", limits=limits,
         )
         maps.append(star_chunk_to_local_map(star, limits))
+    # Each star ends at the next star's frame pose when it holds it: that is the pose the next one joins at.
+    # The default (the frame's successor, else the largest id) took a loop closure's pose for the end when
+    # poses are not numbered 0, 1, 2, ... (a g2o file with ids 0, 2, 4, ..., two sessions apart), and the
+    # divide-and-conquer joins then found no shared frame.
+    for k in range(len(maps) - 1):
+        following = maps[k + 1].frame_id
+        if maps[k].end_id != following and maps[k].has_pose(following):
+            maps[k] = maps[k].replace(end_id=following)
     return maps
 
 

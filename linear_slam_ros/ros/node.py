@@ -780,7 +780,7 @@ class JoinerNode(Node):
         """Send the newest ``map -> odom`` again, stamped ``tf_publish_period`` ahead of the node's clock."""
         if self._tf is not None and self.context.ok():
             ahead = Duration(seconds=float(self.get_parameter("tf_publish_period").value))
-            self._tf.resend((self.get_clock().now() + ahead).to_msg())
+            self._tf.resend((self.get_clock().now() + ahead).to_msg(), self.config.map_frame)
 
     def _tf_output(self, odom_frame: str) -> TfOutput | None:
         """Return the TF output of ``publish_tf``, or ``None`` (with a warning) when nothing can send it here."""

@@ -37,6 +37,10 @@ from scipy.spatial.transform import Rotation
 
 from linear_slam_ros.joiner.config import ParameterDeclaration, ParamSpec
 
+REMEMBERED_STAMPS = 256
+"""Stamps of ``map -> odom`` that :meth:`TfOutput.resend` keeps clear of (tf2's buffer holds 10 s: at the default
+20 re-sends a second this covers about 12 s)."""
+
 TF_QOS_DEPTH = 100
 """History depth of the ``/tf`` publisher (``tf2_ros.TransformBroadcaster``'s default)."""
 
@@ -135,7 +139,8 @@ class TfOutput:
         self._lock = threading.Lock()
         self._last: dict[str, tuple[int, int]] = {}  # child frame -> newest stamp sent
         self._map_odom: TransformStamped | None = None  # the newest map -> odom sent, for resend()
-        self._resent_at: tuple[int, int] = (0, 0)  # the newest stamp resend() sent
+        self._odom_stamps: set[tuple[int, int]] = set()  # stamps map -> odom went out at (resend() avoids them)
+        self._resent_at: tuple[int, int] | None = None  # the last stamp resend() sent
         self.n_sent = 0
         self.n_resent = 0  # map -> odom sent again by resend()
         self.n_repeated = 0  # transforms of a stamp already sent (not sent)
@@ -161,31 +166,49 @@ class TfOutput:
                     return False
                 transform = map_to_odom(map_base, odom_base)
                 self._map_odom = transform
+                self._remember(stamp)
             self._last[child] = stamp
             self.n_sent += 1
         self._send(transform)
         return True
 
-    def resend(self, stamp: Time) -> bool:
-        """Send the newest ``map -> odom`` again at ``stamp`` (later than any it was sent at); return whether it was.
+    def resend(self, stamp: Time, parent_frame: str | None = None) -> bool:
+        """Send the newest ``map -> odom`` again at ``stamp``; return whether it was.
 
         ``map -> odom`` changes only when a submap is joined, while the odometry's ``odom -> base``
         goes on: without a recent ``map -> odom``, a lookup of ``map -> base`` at the current time
         extrapolates and fails. So the node re-sends it ahead of its clock, as SLAM nodes do. Only
         with ``odom_frame``: ``map -> base`` sent again would say the robot stood still.
+
+        Not at a stamp ``map -> odom`` already went out at (a stopped sim clock, a pose's own stamp):
+        tf2 takes a repeated stamp as a publisher error. A clock that went back (a bag played again)
+        is followed. A pose's transform at a stamp a re-send already used still goes out (the
+        correction matters more; tf2 may then warn ``TF_REPEATED_DATA`` once).
+
+        Args:
+            stamp: the stamp to send it at.
+            parent_frame: the parent to send it under (the node's current ``map_frame``); ``None``:
+                the one it was sent with.
         """
         key = (stamp.sec, stamp.nanosec)
         with self._lock:
-            if self._map_odom is None or key <= self._resent_at:  # a stopped clock (sim time): no repeated stamp
+            if self._map_odom is None or key == self._resent_at or key in self._odom_stamps:
                 return False
             previous = self._map_odom
             transform = TransformStamped(child_frame_id=previous.child_frame_id, transform=previous.transform)
-            transform.header.frame_id = previous.header.frame_id
+            transform.header.frame_id = parent_frame or previous.header.frame_id
             transform.header.stamp = stamp
             self._resent_at = key
+            self._remember(key)
             self.n_resent += 1
         self._send(transform)
         return True
+
+    def _remember(self, key: tuple[int, int]) -> None:
+        """Note a stamp ``map -> odom`` went out at (the newest :data:`REMEMBERED_STAMPS`)."""
+        self._odom_stamps.add(key)
+        if len(self._odom_stamps) > REMEMBERED_STAMPS:
+            self._odom_stamps.discard(min(self._odom_stamps))
 
     def reset(self) -> None:
         """Forget the stamps and the ``map -> odom`` sent (``~/reset``, ``~/load_map``: a new map may start at an
@@ -193,6 +216,8 @@ class TfOutput:
         with self._lock:
             self._last.clear()
             self._map_odom = None
+            self._odom_stamps.clear()
+            self._resent_at = None
 
 
 def tf_sender(node: Node) -> tuple[TfSender | None, str]:

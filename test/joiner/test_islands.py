@@ -406,10 +406,15 @@ def test_a_restore_that_would_give_a_robot_another_s_slot_is_refused(maps, tmp_p
 
 
 def test_a_state_file_without_the_robots_order_is_checked_by_name(maps, caplog):
-    import dataclasses
+    from test_snapshot import _rewritten
 
-    older = _two_robot_state(maps, ("a", "b"))
-    older = dataclasses.replace(older, state=dataclasses.replace(older.state, robots=()))  # as format 7 wrote it
+    from linear_slam_ros.joiner.snapshot import decode_state
+
+    j = Joiner(JoinMethod.ONLINE_DC, robots=("a", "b"))
+    j.restore(_two_robot_state(maps, ("a", "b")))
+    older = decode_state(_rewritten(j, lambda fields: fields.pop("robots"), 7))  # a file as format 7 wrote it
+    assert older.state.robots == () and {s.robot for s in older.state.streams} == {"a", "b"}
+    assert "format version 7" not in caplog.text  # read with no warning: nothing else changed
     with pytest.raises(ConfigError, match=r"the saved map has robots \['a', 'b'\], not all in robots=\['a', 'c'\]"):
         Joiner(JoinMethod.ONLINE_DC, robots=("a", "c")).restore(older)
     with caplog.at_level(logging.WARNING):

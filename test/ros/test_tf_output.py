@@ -107,8 +107,15 @@ def test_map_to_odom_is_sent_again_ahead_of_the_clock_and_never_at_a_stamp_alrea
     for t in sent[1:]:
         np.testing.assert_array_equal(_matrix(t), _matrix(sent[0]))  # the same correction, later
     assert tf.n_resent == 2 and tf.n_sent == 1
+    assert not tf.resend(Time(sec=7))  # never at a stamp a pose's map -> odom went out at
     assert tf.publish(transform_msg(2, np.zeros(3), "map", "base_link", Time(sec=7, nanosec=120_000_000)))  # a submap's
+    assert tf.resend(Time(sec=7, nanosec=130_000_000), "world")  # under the node's current map_frame
+    assert (sent[-1].header.frame_id, sent[-1].child_frame_id) == ("world", "odom")
+    np.testing.assert_array_equal(_matrix(sent[-1]), _matrix(sent[-2]))  # the newest correction (the submap's)
+    assert tf.resend(Time(sec=3))  # the clock went back (a bag played again): followed
     tf.reset()  # a new map: the old correction is not sent again
     assert not tf.resend(Time(sec=9))
+    assert tf.publish(transform_msg(2, np.zeros(3), "map", "base_link", Time(sec=1)))  # the new map, earlier stamps
+    assert tf.resend(Time(sec=1, nanosec=50_000_000)) and tf.resend(Time(sec=7, nanosec=100_000_000))  # stamps forgotten
     plain = TfOutput(sent.append)  # map -> base_link: sent again, it would say the robot stood still
     assert plain.publish(map_base) and not plain.resend(Time(sec=8))

@@ -87,6 +87,10 @@ def read_source(path: Path, kind: str | None = None) -> Dataset:
     map_kind = MapKind.PG2D if graph.dim == 2 else MapKind.PG3D
     if kind is not None and MapKind(kind) is not map_kind:
         raise ConfigError(f"{path} is a {graph.dim}D pose graph ({map_kind.value}), not {MapKind(kind).value}")
+    isolated = np.setdiff1d(graph.pose_ids, np.concatenate([graph.from_ids, graph.to_ids]))
+    if isolated.size:  # no edge measures them: the result cannot hold them
+        logger.warning("%s: %d vertices no edge names are left out (vertex %s%s)", path, isolated.size,
+                       ", ".join(str(int(i)) for i in isolated[:5]), ", ..." if isolated.size > 5 else "")
     return Dataset(path.stem, map_kind, tuple(star_local_maps(graph)))
 
 

@@ -103,6 +103,11 @@ class RawLocalMap:
     info: FloatArray
 
 
+FILE_SYMMETRY_RTOL = 1e-6
+"""How far a local-map file's information may be from symmetric, relative to its largest entry (the benchmark files:
+2.1e-9 at most, from their printed digits); the two triangles are averaged below it and refused above."""
+
+
 def default_cache_dir() -> Path:
     """Return the folder where archives are unpacked (``$LINEAR_SLAM_CACHE`` or ``.cache/datasets``)."""
     return Path(os.environ.get("LINEAR_SLAM_CACHE", Path.cwd() / ".cache" / "datasets"))
@@ -218,7 +223,16 @@ def to_local_map(raw: RawLocalMap, kind: MapKind) -> LocalMap:
             f"{raw.name}: variable {int(group_ids[i])} spans {int(sizes[i])} lines, a {kind.value} "
             f"{'pose' if kinds[i] == POSE else 'feature'} needs {int(expected[i])}"
         )
-    values, info = raw.values, 0.5 * (raw.info + raw.info.T)
+    asymmetry = float(np.abs(raw.info - raw.info.T).max()) if raw.info.size else 0.0
+    scale = float(np.abs(raw.info).max()) if raw.info.size else 0.0
+    if asymmetry > FILE_SYMMETRY_RTOL * scale:  # the files print ~10 digits: beyond that, not one matrix (one triangle?)
+        r, c = (int(k) for k in np.unravel_index(int(np.argmax(np.abs(raw.info - raw.info.T))), raw.info.shape))
+        raise DatasetError(
+            f"{raw.name}: the information matrix is not symmetric: entry ({r}, {c}) is {raw.info[r, c]:.10g} "
+            f"and ({c}, {r}) {raw.info[c, r]:.10g} (max |I - I^T| {asymmetry:.3g}, above {FILE_SYMMETRY_RTOL:g} "
+            "of its largest entry); write the whole matrix, not one triangle"
+        )
+    values, info = raw.values, 0.5 * (raw.info + raw.info.T)  # the files' last printed digits
     keys = var_keys(var_ids, kinds)
     if np.unique(keys).size != keys.size:
         var_ids, kinds, values, info = fuse_repeated(raw.name, dim, var_ids, kinds, values, info)
@@ -228,11 +242,26 @@ def to_local_map(raw: RawLocalMap, kind: MapKind) -> LocalMap:
     return LocalMap(dim, frame_id, end_id, var_ids, kinds, values, stored, name=raw.name)
 
 
+def _archive_identity(archive: Path) -> str:
+    """What the unpacked copy's marker records: the archive's path, size and modification time (ns)."""
+    st = archive.stat()
+    return f"{archive.resolve()}\n{st.st_size}\n{st.st_mtime_ns}\n"
+
+
+def _unpacked_from(marker: Path, identity: str) -> bool:
+    """Whether ``marker`` says its folder is a complete unpack of the archive of ``identity``."""
+    try:
+        return marker.read_text() == identity
+    except OSError:
+        return False
+
+
 def _unpack(archive: Path, cache_dir: Path) -> Path:
     stem = archive.name.removesuffix(".tar.xz").removesuffix(".tar.gz").removesuffix(".tar")
     target = cache_dir / stem
     marker = target / ".complete"
-    if marker.exists():
+    identity = _archive_identity(archive)
+    if _unpacked_from(marker, identity):  # another archive of that name (or this one changed) is unpacked again
         return target
     cache_dir.mkdir(parents=True, exist_ok=True)
     logger.debug("unpacking %s into %s", archive, cache_dir)
@@ -250,8 +279,8 @@ def _unpack(archive: Path, cache_dir: Path) -> Path:
                 pass
         if not (scratch / stem).is_dir():
             raise DatasetError(f"{archive} did not unpack to a folder named {stem!r}")
-        (scratch / stem / marker.name).touch()  # complete before it takes the target's name
-        _move_into_place(scratch / stem, target, marker)
+        (scratch / stem / marker.name).write_text(identity)  # complete before it takes the target's name
+        _move_into_place(scratch / stem, target, marker, identity)
     except (tarfile.TarError, OSError, EOFError, lzma.LZMAError, zlib.error) as exc:
         if isinstance(exc, EOFError):
             reason = "the archive is truncated"
@@ -265,19 +294,21 @@ def _unpack(archive: Path, cache_dir: Path) -> Path:
     return target
 
 
-def _move_into_place(unpacked: Path, target: Path, marker: Path) -> None:
-    """Rename a complete unpacked folder to ``target``, unless another process put a complete one there first.
+def _move_into_place(unpacked: Path, target: Path, marker: Path, identity: str) -> None:
+    """Rename a complete unpacked folder to ``target``, unless another process put a complete one of the same
+    archive there first.
 
     Two processes may unpack one archive at once (the test workers, two CLI runs): the rename
-    never replaces a folder another process may be reading. A ``target`` without ``marker`` is an
-    unpack of an earlier version that did not finish: it is removed first.
+    never replaces a folder another process may be reading. A ``target`` whose ``marker`` does not
+    name this archive (an unpack that did not finish, another archive of that name, this one since
+    changed) is removed first.
     """
     for _ in range(3):
         try:
             unpacked.rename(target)
             return
         except OSError:  # the target exists (rename does not replace a non-empty folder)
-            if marker.exists():
+            if _unpacked_from(marker, identity):
                 return  # another process's complete unpack: ours is dropped with the scratch folder
             shutil.rmtree(target, ignore_errors=True)
     unpacked.rename(target)
@@ -312,6 +343,9 @@ def list_local_map_files(folder: Path) -> list[Path]:
             )
         raise DatasetError(f"{folder}: no localmap_<i>.txt files")
     found.sort()
+    for (a, file_a), (b, file_b) in zip(found, found[1:], strict=False):
+        if a == b:  # localmap_2.txt and localmap_02.txt: both were joined, as two submaps
+            raise DatasetError(f"{folder}: {file_a.name} and {file_b.name} both have number {a}")
     numbers = local_map_numbers([f for _, f in found])
     if numbers[0] < 1:
         raise DatasetError(f"{folder}: local map numbers start at 1 (found localmap_{numbers[0]}.txt)")
@@ -364,7 +398,7 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
     with tqdm(total=len(files), desc=f"reading {name}", unit="map", disable=None, delay=PROGRESS_DELAY, leave=False) as bar:
         for f in files:
             try:
-                text = f.read_text()
+                text = f.read_text(encoding="utf-8-sig")  # a byte-order mark (an editor's) is not a number
             except (OSError, UnicodeDecodeError) as exc:
                 raise DatasetError(f"cannot read {f}: {exc}") from None
             raw = parse_local_map_text(text, f.stem, source=str(f))
@@ -372,11 +406,15 @@ def read_dataset(path: str | Path, kind: MapKind | str | None = None, cache_dir:
                 map_kind, detected_from = detect_kind(raw), raw.name
             try:
                 maps.append(to_local_map(raw, map_kind))
-            except DatasetError as exc:
+            except DatasetError as exc:  # messages name the file (with several datasets, which folder)
+                message = str(exc)
+                message = str(f) + message[len(raw.name):] if message.startswith(f"{raw.name}:") else f"{f}: {message}"
                 if kind is not None:
-                    raise
+                    raise DatasetError(message) from None
                 hint = f"kind {map_kind.value} detected from {detected_from}: give the kind if it is another"
-                raise DatasetError(f"{exc} ({hint})") from None
+                raise DatasetError(f"{message} ({hint})") from None
+            except InvalidMapError as exc:
+                raise InvalidMapError(f"{f}: {exc}") from None
             bar.update()
     assert map_kind is not None  # list_local_map_files returns at least one file
     numbers = local_map_numbers(files)

@@ -135,7 +135,7 @@ def read_g2o_file(path: Path) -> G2oFile:
             is listed twice, or the file mixes SE2 and SE3 lines.
     """
     try:
-        lines = Path(path).read_text().splitlines()
+        lines = Path(path).read_text(encoding="utf-8-sig").splitlines()  # a byte-order mark is not part of line 1
     except (OSError, UnicodeDecodeError) as exc:
         raise GraphError(f"cannot read {path}: {exc}") from None
     dims: dict[int, int] = {}  # dimension -> first line using it

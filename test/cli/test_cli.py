@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import pytest
 
@@ -385,3 +386,13 @@ def test_refine_with_the_gate_and_islands_refines_what_the_joins_fused(tmp_path,
     for m in refined[0]:
         seq = int(m.name.split("_")[1].split("/")[0])  # localmap_<i>, or localmap_<i>/closure_<target>
         assert not any((seq, int(pid)) in split for pid in m.pose_ids.tolist() if "/closure_" not in m.name), m.name
+
+
+def test_a_g2o_vertex_no_edge_names_is_left_out_with_a_warning(tmp_path, caplog):
+    """It was dropped without a word (only --format g2o said anything)."""
+    edges = "EDGE_SE2 0 1 1 0 0 100 0 0 100 0 1000\nEDGE_SE2 1 2 1 0 0 100 0 0 100 0 1000\n"
+    (tmp_path / "iso.g2o").write_text("".join(f"VERTEX_SE2 {i} {i} 0 0\n" for i in range(4)) + edges)
+    with caplog.at_level(logging.WARNING):
+        assert main(["join", str(tmp_path / "iso.g2o"), "--out", str(tmp_path / "out")]) == 0
+    assert "1 vertices no edge names are left out (vertex 3)" in caplog.text
+    assert sorted(read_rows(tmp_path / "out" / "poses.txt")) == [0, 1, 2]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import tarfile
 
 import numpy as np
@@ -208,16 +209,31 @@ def test_an_unpack_never_replaces_a_complete_folder_another_process_is_reading(t
     target, marker = tmp_path / "d", tmp_path / "d" / ".complete"
     target.mkdir()
     (target / "localmap_1.txt").write_text("theirs")
-    marker.touch()
+    marker.write_text("the archive")
     ours = tmp_path / "scratch" / "d"
     ours.mkdir(parents=True)
     (ours / "localmap_1.txt").write_text("ours")
-    _move_into_place(ours, target, marker)
+    _move_into_place(ours, target, marker, "the archive")
     assert (target / "localmap_1.txt").read_text() == "theirs" and ours.exists()  # dropped with the scratch folder
     marker.unlink()  # an unfinished unpack of an earlier version: replaced
-    (ours / ".complete").touch()
-    _move_into_place(ours, target, marker)
+    (ours / ".complete").write_text("the archive")
+    _move_into_place(ours, target, marker, "the archive")
     assert (target / "localmap_1.txt").read_text() == "ours" and marker.exists() and not ours.exists()
+
+
+def test_another_archive_of_the_same_name_is_unpacked_again(tmp_path, rng):
+    """The cache was keyed on the archive's name alone: a second mymaps.tar.xz of 10 maps was joined as the first
+    one's 5 cached maps, with exit code 0 and no warning."""
+    world = make_world(2, 12, 5, rng)
+    maps = exact_local_maps(world, rng, 1)
+    cache = tmp_path / "cache"
+    for n, folder in ((5, "one"), (10, "two")):
+        write_dataset(maps[:n], tmp_path / folder / "mymaps", MapKind.PF2D)
+        with tarfile.open(tmp_path / folder / "mymaps.tar.xz", "w:xz") as tar:
+            tar.add(tmp_path / folder / "mymaps", arcname="mymaps")
+    assert len(read_dataset(tmp_path / "one" / "mymaps.tar.xz", cache_dir=cache).maps) == 5
+    assert len(read_dataset(tmp_path / "two" / "mymaps.tar.xz", cache_dir=cache).maps) == 10
+    assert len(read_dataset(tmp_path / "one" / "mymaps.tar.xz", cache_dir=cache).maps) == 5  # and back
 
 
 def _identity_text(ref: int, ids: list[int]) -> str:
@@ -243,9 +259,45 @@ def test_kind_is_detected_with_repeated_variables(ids, kind):
 def test_a_later_map_that_does_not_fit_the_detected_kind_says_where_the_kind_came_from(tmp_path):
     (tmp_path / "localmap_1.txt").write_text(_identity_text(0, [1] * 6))  # reads as 3D
     (tmp_path / "localmap_2.txt").write_text(_identity_text(1, [2] * 3))
-    with pytest.raises(DatasetError, match=r"localmap_2: variable 2 spans 3 lines, a 3DPG pose needs 6 "
+    with pytest.raises(DatasetError, match=r"localmap_2.txt: variable 2 spans 3 lines, a 3DPG pose needs 6 "
                                            r"\(kind 3DPG detected from localmap_1: give the kind if it is another\)"):
         read_dataset(tmp_path)
     assert read_dataset(tmp_path, kind="2DPG").kind is MapKind.PG2D  # pose 1 listed twice in map 1
     with pytest.raises(DatasetError, match=r"pose variables span \[4\] lines and features \[2\]; expected multiples"):
         detect_kind(parse_local_map_text(_identity_text(0, [-1] * 4 + [3] * 2), "localmap_1"))
+
+
+def test_an_information_matrix_written_as_one_triangle_is_refused_naming_the_file_and_entry(tmp_path):
+    """It was averaged with its transpose: every off-diagonal entry silently halved (a 5 cm different end pose over
+    10 VicPark maps), where the pose-graph path refuses an asymmetric matrix."""
+    text = _identity_text(0, [1] * 3).split()
+    n = 3
+    info = np.eye(n) * 10.0
+    info[0, 1] = 2.0  # the upper triangle only
+    lines = [text[0], text[1], *[f"{text[2 + 2 * k]} {text[3 + 2 * k]}" for k in range(n)],
+             *[" ".join(f"{v:g}" for v in row) for row in info]]
+    (tmp_path / "localmap_1.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"localmap_1.txt: the information matrix is not symmetric: entry \(0, 1\) is 2 "
+                                           r"and \(1, 0\) 0 .*write the whole matrix, not one triangle"):
+        read_dataset(tmp_path, kind=MapKind.PG2D)
+    info[1, 0] = 2.0 * (1 + 1e-9)  # the benchmark files' printed digits: averaged
+    lines[-n:] = [" ".join(f"{v:.12g}" for v in row) for row in info]
+    (tmp_path / "localmap_1.txt").write_text("\n".join(lines) + "\n")
+    assert read_dataset(tmp_path, kind=MapKind.PG2D).maps[0].info_dense()[0, 1] == pytest.approx(2.0, rel=1e-8)
+
+
+def test_an_invalid_map_names_its_file(tmp_path):
+    text = _identity_text(0, [1] * 3).split()
+    lines = [text[0], text[1], *[f"{text[2 + 2 * k]} {text[3 + 2 * k]}" for k in range(3)], "1 0 0", "0 -1 0", "0 0 1"]
+    (tmp_path / "localmap_1.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InvalidMapError, match=rf"^{re.escape(str(tmp_path / 'localmap_1.txt'))}: .*not positive definite"):
+        read_dataset(tmp_path, kind=MapKind.PG2D)
+
+
+def test_two_files_of_one_number_are_refused(tmp_path):
+    """localmap_1.txt and localmap_01.txt were both read: map 1 joined twice, and "0 local maps missing"."""
+    text = _identity_text(0, [1] * 3)
+    for name in ("localmap_1.txt", "localmap_01.txt", "localmap_2.txt"):
+        (tmp_path / name).write_text(text)
+    with pytest.raises(DatasetError, match=r": localmap_01.txt and localmap_1.txt both have number 1$"):
+        read_dataset(tmp_path, kind=MapKind.PG2D)

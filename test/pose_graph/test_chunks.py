@@ -232,3 +232,27 @@ def test_edges_to_earlier_poses_are_turned_round_and_join_to_the_truth(dim, rng)
     for i, k in enumerate(joined.ids.tolist()):
         error = joined.x[joined.scalar_slice(i)] - relative_pose(dim, world.poses[0], world.poses[k])
         np.testing.assert_allclose(np.r_[error[:dim], wrap_angle(error[dim:])], 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("method", ["dc", "online-dc"])
+def test_stars_of_poses_not_numbered_one_by_one_end_at_the_next_star(dim, method, rng):
+    """Poses 0, 2, 4, ... (a g2o file another tool wrote): a star's end pose was its frame's successor if held, else
+    its largest id, here a loop closure's pose, and divide and conquer found no shared frame (exit code 2)."""
+    from linear_slam_ros.core.frames import change_frame
+    from linear_slam_ros.evaluation.runner import run_join
+    from linear_slam_ros.evaluation.synthetic import make_world
+    from linear_slam_ros.pose_graph.chunks import star_local_maps
+
+    world = make_world(dim, 8, 0, rng)
+    ids = 2 * np.arange(9)  # pose k of the world is pose 2k of the file
+    pairs = [(k, k + 1) for k in range(8)] + [(0, 6), (2, 7)]
+    z = np.array([relative_pose(dim, world.poses[a], world.poses[b]) for a, b in pairs])
+    info = np.stack([np.eye(z.shape[1]) * 100.0 for _ in pairs])
+    graph = PoseGraph.from_edges([ids[a] for a, _ in pairs], [ids[b] for _, b in pairs], z, info, dim=dim)
+    maps = star_local_maps(graph)
+    assert [m.end_id for m in maps] == [int(ids[k + 1]) for k in range(8)]  # the next star's frame, not 12 or 14
+    joined = change_frame(run_join(maps, method).result, 0)
+    for k in range(1, 9):  # pose 0 is the frame
+        got = joined.x[joined.scalar_slice(joined.key_set[2 * int(ids[k])])]  # keys are 2 id + kind (pose 0)
+        np.testing.assert_allclose(got[:dim], world.poses[k][:dim], atol=1e-9)

@@ -197,3 +197,11 @@ def test_se3_file_is_joined_as_pose_only_local_maps(tmp_path, rng):
     # the χ² of the star maps is the graph objective's
     edges = edge_maps(back)
     assert MapObjective.build(joined, edges).chi2(joined.x) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_byte_order_mark_is_not_part_of_the_first_line(tmp_path):
+    """An editor's UTF-8 BOM made line 1 an unknown type ('\\ufeffEDGE_SE2'): skipped with a warning, pose 0 lost."""
+    text = "EDGE_SE2 0 1 1 0 0 100 0 0 100 0 1000\nEDGE_SE2 1 2 1 0 0 100 0 0 100 0 1000\n"
+    (tmp_path / "bom.g2o").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    g2o = read_g2o_file(tmp_path / "bom.g2o")
+    assert g2o.skipped == {} and g2o.from_ids.tolist() == [0, 1]

@@ -367,8 +367,9 @@ class JoinerNode(Node):
             submap = qualify(submap, self._slots[robot])
         except LinearSlamError as exc:  # it was decoded when journaled: robots or the limits changed since
             raise ConfigError(
-                f"journal record {index} ({topic}) no longer decodes: {exc}; start with the robots and input limits it "
-                "was journaled with, or with another state_dir"
+                f"journal record {index} ({topic}) of {self.config.state_dir}/journal no longer decodes: {exc}; start "
+                "with the robots and input limits it was journaled with, or with another state_dir (or the record is "
+                "damaged: the journal keeps no checksum per record)"
             ) from None
         self._offer(submap, seq, index, stamp=stamp, robot=robot)
 

@@ -99,8 +99,10 @@ class StateStore:
         self._snapshot_lock = threading.Lock()
 
     def has_state(self) -> bool:
-        """Return whether the folder holds a journal or a snapshot."""
-        return (self.journal_dir / "metadata.yaml").exists() or bool(self.snapshots())
+        """Return whether the folder holds a journal or a snapshot (a journal file counts without its metadata.yaml,
+        which the reader does without: else the state was not resumed, and came back at the next start)."""
+        journal_files = self.journal_dir.is_dir() and any(self.journal_dir.glob("journal_*.mcap"))
+        return (self.journal_dir / "metadata.yaml").exists() or journal_files or bool(self.snapshots())
 
     def snapshots(self) -> list[tuple[int, Path]]:
         """Return ``(journal records, path)`` of the snapshots, newest first."""

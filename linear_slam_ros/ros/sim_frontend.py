@@ -156,6 +156,8 @@ class SimFrontend(Node):
         self.map_frame = self.declare_parameter(
             "map_frame", "map", _descriptor("frame_id of ~/true_pose (the frame of pose 0)")
         ).value
+        if not self.map_frame:  # as the joiner refuses it
+            raise ValueError("parameter map_frame='' is not a frame id")
         self.simulation = Simulation(world, seed, steps)  # ValueError on an unknown world
 
         # The joiner's inbound profile: reliable, keep all. Not a depth of 10: see the module docstring.
@@ -172,6 +174,8 @@ class SimFrontend(Node):
 
     def publish_next_map(self) -> None:
         """Timer callback: build the next local map and publish it with its true end pose."""
+        if not self.context.ok():  # shutting down: nothing can be published any more
+            return
         if self.seq == 0 and self.local_map_pub.get_subscription_count() == 0:
             # The topic is volatile: a map published before the joiner is discovered would be lost.
             self.get_logger().info("waiting for a subscriber on local_map", throttle_duration_sec=5.0)
@@ -217,6 +221,11 @@ def main(args: list[str] | None = None) -> None:
         node.get_logger().info(f"published {node.seq} local maps")
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        # SIGTERM (ros2 launch, docker, systemd) shut the context down under a publication or the wait for
+        # acknowledgements: rclpy's RCLError then, a normal stop all the same (as the joiner's main)
+        if node.context.ok():
+            raise
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -331,3 +331,14 @@ def test_two_snapshots_at_once_are_written_one_after_the_other(messages, tmp_pat
     for n, joiner in ((6, first), (9, second)):
         restored = read_snapshot(tmp_path / "snapshots" / f"state_{n}.npz")
         assert global_result(restored.state).x.tobytes() == global_result(joiner.state).x.tobytes()
+
+
+def test_a_journal_without_its_metadata_is_state_all_the_same(messages, tmp_path):
+    """Without journal/metadata.yaml (lost, or removed by hand) and no snapshot, the folder counted as empty: the start
+    began an empty map, whose first snapshot then brought the old journal back at the next start."""
+    _session(tmp_path, messages[:10], snapshot_every=1000)
+    (tmp_path / "journal" / "metadata.yaml").unlink()
+    store = StateStore(tmp_path)
+    assert store.has_state() and not store.snapshots()
+    joiner = Joiner("online-dc")
+    assert store.recover(joiner, _offer_to(joiner)).replayed == 10 and joiner.state.n_joined == 10

@@ -3,6 +3,7 @@ only the tests use (the inverse pose, dataset writing, result reading, typed glo
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tarfile
 import tempfile
@@ -135,7 +136,11 @@ def dataset_archive(name: str) -> Path:
             partial = archive.with_name(f".{archive.name}.{os.getpid()}")
             with tarfile.open(partial, "w:xz") as tar:  # the same bytes on every machine
                 tar.add(Path(scratch) / name, arcname=name, filter=_reproducible)
-            partial.rename(archive)
+            # never over another worker's: the unpacked copy records the archive it came from (path, size, time),
+            # and a replaced archive is unpacked again under the feet of a worker reading the first one's
+            with contextlib.suppress(FileExistsError):
+                os.link(partial, archive)
+            partial.unlink()
     return archive
 
 

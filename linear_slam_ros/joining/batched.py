@@ -364,7 +364,7 @@ def join_pairs(batch: MapBatch) -> MapBatch:
     # Solved for the correction to a start point x0 (each variable's value in the map that defines it), not for
     # absolute coordinates: the same solution, but the right-hand side is the maps' disagreement, not their
     # coordinates, so round-off does not grow with the lever arms (an absolute solve drifted from the pairwise
-    # tree by about 10x per level, off by decimetres on a noise-free chain of 12,800 steps: README, "Scale").
+    # tree by about 10x per level, off by decimetres on a noise-free chain of 12,800 steps: README, "Design").
     defining_scalars = np.repeat(defining, sizes)
     x0 = np.empty(n_new)
     x0[sc_map[defining_scalars]] = z[defining_scalars]

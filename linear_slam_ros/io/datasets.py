@@ -223,10 +223,11 @@ def to_local_map(raw: RawLocalMap, kind: MapKind) -> LocalMap:
             f"{raw.name}: variable {int(group_ids[i])} spans {int(sizes[i])} lines, a {kind.value} "
             f"{'pose' if kinds[i] == POSE else 'feature'} needs {int(expected[i])}"
         )
-    asymmetry = float(np.abs(raw.info - raw.info.T).max()) if raw.info.size else 0.0
+    skew = np.abs(raw.info - raw.info.T)
+    asymmetry = float(skew.max()) if raw.info.size else 0.0
     scale = float(np.abs(raw.info).max()) if raw.info.size else 0.0
     if asymmetry > FILE_SYMMETRY_RTOL * scale:  # the files print ~10 digits: beyond that, not one matrix (one triangle?)
-        r, c = (int(k) for k in np.unravel_index(int(np.argmax(np.abs(raw.info - raw.info.T))), raw.info.shape))
+        r, c = (int(k) for k in np.unravel_index(int(np.argmax(skew)), raw.info.shape))
         raise DatasetError(
             f"{raw.name}: the information matrix is not symmetric: entry ({r}, {c}) is {raw.info[r, c]:.10g} "
             f"and ({c}, {r}) {raw.info[c, r]:.10g} (max |I - I^T| {asymmetry:.3g}, above {FILE_SYMMETRY_RTOL:g} "

@@ -244,10 +244,11 @@ class JoinerNode(Node):
         if self.get_parameter("publish_tf").value:
             self._tf = self._tf_output(odom_frame)
         # map -> odom again ahead of the clock between submaps, so map -> base lookups at "now" work (README, TF)
-        period = float(self.get_parameter("tf_publish_period").value)
+        self._tf_period = float(self.get_parameter("tf_publish_period").value)  # read-only
         self._tf_resender = PeriodicThread(
-            [PeriodicTask("tf_resend", lambda: period, self._on_tf_timer)], self._on_output_error, name="linear_slam_tf",
-        ) if self._tf is not None and odom_frame and period > 0 else None
+            [PeriodicTask("tf_resend", lambda: self._tf_period, self._on_tf_timer)], self._on_output_error,
+            name="linear_slam_tf",
+        ) if self._tf is not None and odom_frame and self._tf_period > 0 else None
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         # The executor (single-threaded: main) takes the arrivals and the services; the outputs, the
         # snapshots and the summary run on their own thread (README, "Scale").
@@ -780,7 +781,7 @@ class JoinerNode(Node):
     def _on_tf_timer(self) -> None:
         """Send the newest ``map -> odom`` again, stamped ``tf_publish_period`` ahead of the node's clock."""
         if self._tf is not None and self.context.ok():
-            ahead = Duration(seconds=float(self.get_parameter("tf_publish_period").value))
+            ahead = Duration(seconds=self._tf_period)
             self._tf.resend((self.get_clock().now() + ahead).to_msg(), self.config.map_frame)
 
     def _tf_output(self, odom_frame: str) -> TfOutput | None:
